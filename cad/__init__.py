@@ -1,0 +1,1 @@
+"""Layouts: load, validate and import target CAD layouts (``nanoasm.layout/1``)."""

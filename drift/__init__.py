@@ -1,0 +1,1 @@
+"""Drift and creep models and the Kalman filter that tracks them."""

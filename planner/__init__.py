@@ -1,0 +1,1 @@
+"""Assignment, sequencing and push paths: layout + environment -> plan."""

@@ -1,0 +1,1 @@
+"""The sample and the instrument: scenes, the simulated AFM, identification."""
