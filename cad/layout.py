@@ -1,0 +1,152 @@
+"""Layout v1 (``nanoasm.layout/1``): which object goes where.
+
+A layout is a working area, target slots (particles and rods) and keep-out polygons,
+loaded from TOML or JSON into frozen, validated value types. Every rejection is an
+:class:`~nanoasm.errors.InputError` naming the file, the key path and the problem.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+
+import shapely
+
+from nanoasm.bodies import (
+    Body,
+    body_from_table,
+    check_unique_ids,
+    outside_area,
+    overlapping_pairs,
+    polygon_from_table,
+    polygon_overlaps,
+)
+from nanoasm.fileio import dumps_json, dumps_toml, read_document, write_atomic
+from nanoasm.schema import Point, Table, check_format
+
+FORMAT = "nanoasm.layout/1"
+KINDS = ("particle", "rod")
+
+Target = Body
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """When a slot counts as filled: centre error (nm), rod axis error (deg), relative size."""
+
+    position: float = 20.0
+    angle: float = 3.0
+    size: float = 0.25
+
+    def to_dict(self) -> dict:
+        return {"position": self.position, "angle": self.angle, "size": self.size}
+
+
+@dataclass(frozen=True)
+class Keepout:
+    """A region no object may enter (electrodes, marks), as polygon vertices in nm."""
+
+    polygon: tuple[Point, ...]
+
+    def geometry(self) -> shapely.Polygon:
+        pts = self.polygon[:-1] if len(self.polygon) > 3 and self.polygon[0] == self.polygon[-1] else self.polygon
+        return shapely.Polygon(pts)
+
+    def to_dict(self) -> dict:
+        return {"polygon": [list(p) for p in self.polygon]}
+
+
+@dataclass(frozen=True)
+class Layout:
+    area: Point
+    targets: tuple[Target, ...]
+    keepouts: tuple[Keepout, ...] = ()
+    tolerance: Tolerance = field(default_factory=Tolerance)
+    name: str | None = None
+
+    def to_dict(self) -> dict:
+        d: dict = {"format": FORMAT}
+        if self.name is not None:
+            d["name"] = self.name
+        d["area"] = list(self.area)
+        d["tolerance"] = self.tolerance.to_dict()
+        d["target"] = [t.to_dict() for t in self.targets]
+        if self.keepouts:
+            d["keepout"] = [k.to_dict() for k in self.keepouts]
+        return d
+
+    def dumps_toml(self) -> str:
+        return dumps_toml(self.to_dict())
+
+    def dumps_json(self) -> str:
+        return dumps_json(self.to_dict())
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write as JSON when ``path`` ends in ``.json``, else as TOML; atomically."""
+        text = self.dumps_json() if str(path).lower().endswith(".json") else self.dumps_toml()
+        write_atomic(path, text)
+
+    def target(self, target_id: str) -> Target:
+        for t in self.targets:
+            if t.id == target_id:
+                return t
+        raise KeyError(target_id)
+
+    def summary(self) -> str:
+        n_p = sum(t.kind == "particle" for t in self.targets)
+        n_r = sum(t.kind == "rod" for t in self.targets)
+        label = f"{self.name!r}: " if self.name else ""
+        return (f"{label}{self.area[0]:g} x {self.area[1]:g} nm, {n_p} particle slot(s), "
+                f"{n_r} rod slot(s), {len(self.keepouts)} keep-out(s)")
+
+
+def _tolerance(t: Table) -> Tolerance:
+    tt = t.table("tolerance", optional=True)
+    if tt is None:
+        return Tolerance()
+    tt.check_keys(optional={"position", "angle", "size"})
+    d = Tolerance()
+    return Tolerance(
+        position=tt.number("position", d.position, positive=True),
+        angle=tt.number("angle", d.angle, positive=True, hi=90.0),
+        size=tt.number("size", d.size, positive=True, hi=1.0),
+    )
+
+
+def layout_from_dict(data: dict, source: str | None = None) -> Layout:
+    """Validate a parsed layout document (TOML, JSON or an importer's output)."""
+    check_format(data, source, FORMAT)
+    t = Table(data, source)
+    t.check_keys(required={"format", "area"}, optional={"name", "tolerance", "target", "keepout"})
+    name = t.string("name", None)
+    area = t.pair("area", names=("width", "height"), positive=True)
+    tolerance = _tolerance(t)
+
+    ttables = t.tables("target")
+    if not ttables:
+        t.fail("target", "a layout needs at least one [[target]]")
+    targets = [body_from_table(tt, f"t{i}", KINDS)[0] for i, tt in enumerate(ttables, start=1)]
+    check_unique_ids(ttables, targets)
+
+    ktables = t.tables("keepout")
+    keepouts, polys = [], []
+    for kt in ktables:
+        kt.check_keys(required={"polygon"})
+        pts, poly = polygon_from_table(kt)
+        keepouts.append(Keepout(pts))
+        polys.append(poly)
+
+    for tt, tg in zip(ttables, targets):
+        if outside_area(tg, area):
+            tt.fail(None, f"target {tg.id!r} lies (partly) outside the area {area[0]:g} x {area[1]:g}")
+    for i, j in overlapping_pairs(targets):
+        ttables[j].fail(None, f"target {targets[j].id!r} overlaps target {targets[i].id!r}")
+    for i, k in polygon_overlaps(targets, polys):
+        ttables[i].fail(None, f"target {targets[i].id!r} overlaps {ktables[k].path}")
+
+    return Layout(area, tuple(targets), tuple(keepouts), tolerance, name)
+
+
+def load_layout(path: str | os.PathLike) -> Layout:
+    """Load a layout from TOML or JSON (by suffix, else by content)."""
+    return layout_from_dict(read_document(path), str(path))
