@@ -1,0 +1,161 @@
+"""Scene v1 (``nanoasm.scene/1``): the truth of a simulated world.
+
+Objects (particles and rods), fixed obstacles, drift and noise, loaded from TOML or
+JSON into frozen, validated value types. Every rejection is an
+:class:`~nanoasm.errors.InputError` naming the file, the key path and the problem.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import shapely
+
+from nanoasm.bodies import (
+    Body,
+    body_from_table,
+    check_unique_ids,
+    outside_area,
+    overlapping_pairs,
+    polygon_from_table,
+    polygon_overlaps,
+)
+from nanoasm.fileio import dumps_json, dumps_toml, read_document, write_atomic
+from nanoasm.schema import Point, Table, check_format
+
+FORMAT = "nanoasm.scene/1"
+KINDS = ("particle", "rod")
+
+
+@dataclass(frozen=True)
+class Obstacle:
+    """A fixed feature (electrode, debris, trench) of ``height`` nm over a polygon."""
+
+    polygon: tuple[Point, ...]
+    height: float
+
+    def geometry(self) -> shapely.Polygon:
+        pts = self.polygon[:-1] if len(self.polygon) > 3 and self.polygon[0] == self.polygon[-1] else self.polygon
+        return shapely.Polygon(pts)
+
+    def to_dict(self) -> dict:
+        return {"polygon": [list(p) for p in self.polygon], "height": self.height}
+
+
+@dataclass(frozen=True)
+class Drift:
+    """Steady drift velocity (nm/s) of scanner versus sample and a random walk on it (nm/√s)."""
+
+    velocity: Point
+    random_walk: float
+
+    def to_dict(self) -> dict:
+        return {"velocity": list(self.velocity), "random_walk": self.random_walk}
+
+
+@dataclass(frozen=True)
+class Noise:
+    """Height noise per sample (nm RMS)."""
+
+    height_rms: float
+
+    def to_dict(self) -> dict:
+        return {"height_rms": self.height_rms}
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A simulated sample. ``drift``/``noise`` are None when the file leaves them to the world."""
+
+    area: Point
+    objects: tuple[Body, ...] = ()
+    obstacles: tuple[Obstacle, ...] = ()
+    drift: Drift | None = None
+    noise: Noise | None = None
+    seed: int | None = None
+
+    def to_dict(self) -> dict:
+        d: dict = {"format": FORMAT, "area": list(self.area)}
+        if self.seed is not None:
+            d["seed"] = self.seed
+        d["object"] = [o.to_dict() for o in self.objects]
+        if self.obstacles:
+            d["obstacle"] = [o.to_dict() for o in self.obstacles]
+        if self.drift is not None:
+            d["drift"] = self.drift.to_dict()
+        if self.noise is not None:
+            d["noise"] = self.noise.to_dict()
+        return d
+
+    def dumps_toml(self) -> str:
+        return dumps_toml(self.to_dict())
+
+    def dumps_json(self) -> str:
+        return dumps_json(self.to_dict())
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write as JSON when ``path`` ends in ``.json``, else as TOML; atomically."""
+        text = self.dumps_json() if str(path).lower().endswith(".json") else self.dumps_toml()
+        write_atomic(path, text)
+
+    def summary(self) -> str:
+        n_p = sum(o.kind == "particle" for o in self.objects)
+        n_r = sum(o.kind == "rod" for o in self.objects)
+        return (f"{self.area[0]:g} x {self.area[1]:g} nm, {n_p} particle(s), {n_r} rod(s), "
+                f"{len(self.obstacles)} obstacle(s)")
+
+
+def _drift(t: Table) -> Drift | None:
+    dt = t.table("drift", optional=True)
+    if dt is None:
+        return None
+    dt.check_keys(required={"velocity", "random_walk"})
+    return Drift(dt.pair("velocity"), dt.number("random_walk", nonnegative=True))
+
+
+def _noise(t: Table) -> Noise | None:
+    nt = t.table("noise", optional=True)
+    if nt is None:
+        return None
+    nt.check_keys(required={"height_rms"})
+    return Noise(nt.number("height_rms", nonnegative=True))
+
+
+def scene_from_dict(data: dict, source: str | None = None) -> Scene:
+    """Validate a parsed scene document."""
+    check_format(data, source, FORMAT)
+    t = Table(data, source)
+    t.check_keys(required={"format", "area"},
+                 optional={"seed", "object", "obstacle", "drift", "noise"})
+    area = t.pair("area", names=("width", "height"), positive=True)
+    seed = t.integer("seed", None, nonnegative=True)
+
+    otables = t.tables("object")
+    objects = [body_from_table(ot, f"o{i}", KINDS)[0] for i, ot in enumerate(otables, start=1)]
+    check_unique_ids(otables, objects)
+
+    btables = t.tables("obstacle")
+    obstacles, polys = [], []
+    for bt in btables:
+        bt.check_keys(required={"polygon", "height"})
+        pts, poly = polygon_from_table(bt)
+        obstacles.append(Obstacle(pts, bt.number("height", positive=True)))
+        polys.append(poly)
+
+    drift, noise = _drift(t), _noise(t)
+
+    for ot, o in zip(otables, objects):
+        if outside_area(o, area):
+            ot.fail(None, f"object {o.id!r} lies (partly) outside the area {area[0]:g} x {area[1]:g}")
+    for i, j in overlapping_pairs(objects):
+        otables[j].fail(None, f"object {objects[j].id!r} overlaps object {objects[i].id!r}")
+    for i, k in polygon_overlaps(objects, polys):
+        otables[i].fail(None, f"object {objects[i].id!r} overlaps {btables[k].path}")
+
+    return Scene(area, tuple(objects), tuple(obstacles), drift, noise, seed)
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Load a scene from TOML or JSON (by suffix, else by content)."""
+    return scene_from_dict(read_document(path), str(path))
