@@ -1,0 +1,115 @@
+"""Environment v1 (``nanoasm.env/1``): the objects identified on a sample.
+
+Written by ``nanoasm identify``, read by ``nanoasm plan``. Objects are particles, rods
+or wires (rod-like but too slender to push as a rigid rod); anything else is an
+obstacle polygon. Objects or obstacles cut by the image border carry ``edge = True``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from nanoasm.bodies import Body, body_from_table, check_unique_ids, polygon_from_table
+from nanoasm.fileio import dumps_json, read_document, write_atomic
+from nanoasm.schema import Point, Table, check_format
+
+FORMAT = "nanoasm.env/1"
+KINDS = ("particle", "rod", "wire")
+
+
+@dataclass(frozen=True)
+class EnvObject(Body):
+    """An identified object: a :class:`Body` with a confidence in [0, 1] and an edge flag."""
+
+    confidence: float = 1.0
+    edge: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.kind not in KINDS:
+            raise ValueError(f"{self.id}: kind must be one of {KINDS}")
+        if not 0.0 <= self.confidence <= 1.0:
+            raise ValueError(f"{self.id}: confidence must be in [0, 1]")
+
+    def to_dict(self) -> dict:
+        d = super().to_dict()
+        d["confidence"] = self.confidence
+        if self.edge:
+            d["edge"] = True
+        return d
+
+
+@dataclass(frozen=True)
+class EnvObstacle:
+    """A fixed feature (electrode, aggregate, debris) as a polygon with a height in nm."""
+
+    polygon: tuple[Point, ...]
+    height: float
+    edge: bool = False
+
+    def to_dict(self) -> dict:
+        d: dict = {"polygon": [list(p) for p in self.polygon], "height": self.height}
+        if self.edge:
+            d["edge"] = True
+        return d
+
+
+@dataclass(frozen=True)
+class Environment:
+    """What identification found: ``area`` (w, h) in nm, objects and obstacles."""
+
+    area: Point
+    objects: tuple[EnvObject, ...] = ()
+    obstacles: tuple[EnvObstacle, ...] = ()
+    source: str | None = None
+
+    def to_dict(self) -> dict:
+        d: dict = {"format": FORMAT}
+        if self.source is not None:
+            d["source"] = self.source
+        d["area"] = list(self.area)
+        d["objects"] = [o.to_dict() for o in self.objects]
+        d["obstacles"] = [o.to_dict() for o in self.obstacles]
+        return d
+
+    def dumps(self) -> str:
+        return dumps_json(self.to_dict())
+
+    def save(self, path: str | os.PathLike) -> None:
+        write_atomic(path, self.dumps())
+
+    def object(self, object_id: str) -> EnvObject:
+        for o in self.objects:
+            if o.id == object_id:
+                return o
+        raise KeyError(object_id)
+
+
+def environment_from_dict(data: dict, source: str | None = None) -> Environment:
+    """Validate a parsed ``nanoasm.env/1`` document; errors name ``source`` and the key."""
+    check_format(data, source, FORMAT)
+    t = Table(data, source)
+    t.check_keys(required={"format", "area"}, optional={"source", "objects", "obstacles"})
+    src = t.string("source", None)
+    area = t.pair("area", names=("width", "height"), positive=True)
+    tables = t.tables("objects")
+    objects = []
+    for i, ot in enumerate(tables, start=1):
+        body, _ = body_from_table(ot, f"o{i}", KINDS, extra=("confidence", "edge"))
+        conf = ot.number("confidence", 1.0, lo=0.0, hi=1.0)
+        edge = ot.boolean("edge", False)
+        objects.append(EnvObject(body.id, body.kind, body.at, body.diameter, body.angle,
+                                 body.length, conf, edge))
+    check_unique_ids(tables, objects)
+    obstacles = []
+    for ot in t.tables("obstacles"):
+        ot.check_keys(required={"polygon", "height"}, optional={"edge"})
+        pts, _ = polygon_from_table(ot)
+        height = ot.number("height", nonnegative=True)
+        obstacles.append(EnvObstacle(pts, height, ot.boolean("edge", False)))
+    return Environment(area, tuple(objects), tuple(obstacles), src)
+
+
+def load_environment(path: str | os.PathLike) -> Environment:
+    return environment_from_dict(read_document(path), str(path))
