@@ -1,0 +1,247 @@
+"""The ``nanoasm`` command line.
+
+Every user error (bad file, bad option) ends in one line on stderr and a non-zero exit:
+1 for a bad input file or value, 2 for a bad command line. No traceback, no partial
+output file.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+
+try:  # typer >= 0.22 carries its own copy of click
+    from typer._click import exceptions as cx
+except ImportError:  # pragma: no cover - older typer on click
+    from click import exceptions as cx
+
+from . import __version__
+from .errors import InputError, NanoasmError
+
+app = typer.Typer(
+    name="nanoasm",
+    help="Automated AFM nanoassembly: layouts, scenes, identification, planning, execution.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+    rich_markup_mode=None,
+)
+layout_app = typer.Typer(help="Check and convert target layouts (nanoasm.layout/1).",
+                         no_args_is_help=True)
+scene_app = typer.Typer(help="Check and generate simulated scenes (nanoasm.scene/1).",
+                        no_args_is_help=True)
+app.add_typer(layout_app, name="layout")
+app.add_typer(scene_app, name="scene")
+
+NATIVE = (".toml", ".json")
+
+
+def _version(value: bool) -> None:
+    if value:
+        print(f"nanoasm {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: Annotated[bool, typer.Option("--version", callback=_version, is_eager=True,
+                                          help="Print the version and exit.")] = False,
+) -> None:
+    """Automated AFM nanoassembly."""
+
+
+# -- layouts ------------------------------------------------------------------------
+
+Scale = Annotated[Optional[float], typer.Option(help="nm per drawing unit (SVG, DXF without units).")]
+Cell = Annotated[Optional[str], typer.Option(help="GDSII cell to read (default: the top cell).")]
+RodDiameter = Annotated[Optional[float], typer.Option(help="Diameter in nm of rods drawn as DXF LINEs.")]
+Area = Annotated[Optional[tuple[float, float]], typer.Option(metavar="W H",
+                 help="Working area in nm when the drawing has none (GDSII, DXF).")]
+Layer = Optional[str]
+
+
+def _layer_option(kind: str, default: str) -> object:
+    return typer.Option(metavar="L/D", help=f"GDSII layer/datatype of {kind} (default {default}).")
+
+
+def _parse_layer(text: str | None, option: str) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        layer, _, datatype = text.partition("/")
+        value = (int(layer), int(datatype or 0))
+    except ValueError:
+        raise InputError(None, option, f"must be LAYER/DATATYPE such as 1/0, got {text!r}") from None
+    if min(value) < 0:
+        raise InputError(None, option, f"layer and datatype must not be negative, got {text!r}")
+    return value
+
+
+def _read_layout(path: Path, options: dict):
+    from nanoasm.cad.layout import layout_from_dict, load_layout
+
+    given = {k: v for k, v in options.items() if v is not None}
+    if path.suffix.lower() in NATIVE or not path.suffix:
+        if given:
+            raise InputError(str(path), None,
+                             f"option(s) {', '.join('--' + k.replace('_', '-') for k in given)} "
+                             "apply only to SVG, GDSII and DXF files")
+        return load_layout(path)
+    from nanoasm.cad.importers import import_layout
+
+    return layout_from_dict(import_layout(path, **given), str(path))
+
+
+def _importer_options(scale, cell, rod_diameter, area, particle_layer, rod_layer, keepout_layer,
+                      area_layer, keepout_class) -> dict:
+    return dict(
+        scale=scale, cell=cell, rod_diameter=rod_diameter, area=area,
+        particle_layer=_parse_layer(particle_layer, "--particle-layer"),
+        rod_layer=_parse_layer(rod_layer, "--rod-layer"),
+        keepout_layer=_parse_layer(keepout_layer, "--keepout-layer"),
+        area_layer=_parse_layer(area_layer, "--area-layer"),
+        keepout_class=keepout_class,
+    )
+
+
+@layout_app.command("check")
+def layout_check(
+    file: Annotated[Path, typer.Argument(help="Layout: TOML or JSON, or SVG, GDSII, DXF.")],
+    scale: Scale = None, cell: Cell = None, rod_diameter: RodDiameter = None, area: Area = None,
+    particle_layer: Annotated[Layer, _layer_option("particle slots", "1/0")] = None,
+    rod_layer: Annotated[Layer, _layer_option("rod slots", "2/0")] = None,
+    keepout_layer: Annotated[Layer, _layer_option("keep-outs", "3/0")] = None,
+    area_layer: Annotated[Layer, _layer_option("the working area", "0/0")] = None,
+    keepout_class: Annotated[Optional[str], typer.Option(help="SVG class of keep-outs (default keepout).")] = None,
+) -> None:
+    """Validate a layout and print a summary."""
+    opts = _importer_options(scale, cell, rod_diameter, area, particle_layer, rod_layer,
+                             keepout_layer, area_layer, keepout_class)
+    layout = _read_layout(file, opts)
+    print(f"{file}: ok: {layout.summary()}")
+
+
+@layout_app.command("convert")
+def layout_convert(
+    file: Annotated[Path, typer.Argument(help="SVG, GDSII (.gds), DXF, TOML or JSON layout.")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output .toml or .json file.")],
+    scale: Scale = None, cell: Cell = None, rod_diameter: RodDiameter = None, area: Area = None,
+    particle_layer: Annotated[Layer, _layer_option("particle slots", "1/0")] = None,
+    rod_layer: Annotated[Layer, _layer_option("rod slots", "2/0")] = None,
+    keepout_layer: Annotated[Layer, _layer_option("keep-outs", "3/0")] = None,
+    area_layer: Annotated[Layer, _layer_option("the working area", "0/0")] = None,
+    keepout_class: Annotated[Optional[str], typer.Option(help="SVG class of keep-outs (default keepout).")] = None,
+) -> None:
+    """Convert a CAD drawing (or a TOML/JSON layout) into a validated layout file."""
+    if output.suffix.lower() not in NATIVE:
+        raise InputError(str(output), None, "output must end in .toml or .json")
+    opts = _importer_options(scale, cell, rod_diameter, area, particle_layer, rod_layer,
+                             keepout_layer, area_layer, keepout_class)
+    layout = _read_layout(file, opts)
+    layout.save(output)
+    print(f"{output}: written: {layout.summary()}")
+
+
+# -- scenes -------------------------------------------------------------------------
+
+Range = Optional[tuple[float, float]]
+
+
+@scene_app.command("check")
+def scene_check(file: Annotated[Path, typer.Argument(help="Scene: TOML or JSON.")]) -> None:
+    """Validate a scene and print a summary."""
+    from nanoasm.world.scene import load_scene
+
+    scene = load_scene(file)
+    print(f"{file}: ok: {scene.summary()}")
+
+
+@scene_app.command("random")
+def scene_random(
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output .toml or .json file.")],
+    particles: Annotated[int, typer.Option(help="Number of particles.")] = 20,
+    rods: Annotated[int, typer.Option(help="Number of rods.")] = 0,
+    obstacles: Annotated[int, typer.Option(help="Number of rectangular obstacles.")] = 0,
+    seed: Annotated[int, typer.Option(help="Random seed; the same seed gives the same scene.")] = 0,
+    area: Annotated[tuple[float, float], typer.Option(metavar="W H", help="Area in nm.")] = (10000.0, 10000.0),
+    particle_diameter: Annotated[tuple[float, float], typer.Option(metavar="MIN MAX")] = (60.0, 120.0),
+    rod_length: Annotated[tuple[float, float], typer.Option(metavar="MIN MAX")] = (500.0, 1300.0),
+    rod_diameter: Annotated[tuple[float, float], typer.Option(metavar="MIN MAX")] = (60.0, 100.0),
+    obstacle_size: Annotated[tuple[float, float], typer.Option(metavar="MIN MAX")] = (300.0, 1500.0),
+    obstacle_height: Annotated[tuple[float, float], typer.Option(metavar="MIN MAX")] = (20.0, 60.0),
+    gap: Annotated[float, typer.Option(help="Least clearance between footprints, nm.")] = 50.0,
+    drift: Annotated[Optional[tuple[float, float]], typer.Option(metavar="VX VY",
+                     help="Steady drift velocity, nm/s (default: the world's own).")] = None,
+    random_walk: Annotated[float, typer.Option(help="Random walk on the drift velocity, nm/sqrt(s).")] = 0.05,
+    height_noise: Annotated[Optional[float], typer.Option(help="Height noise, nm RMS.")] = None,
+) -> None:
+    """Generate a valid random scene (never an overlap)."""
+    from nanoasm.world.random_scene import SceneSpec, random_scene
+    from nanoasm.world.scene import Drift, Noise
+
+    if output.suffix.lower() not in NATIVE:
+        raise InputError(str(output), None, "output must end in .toml or .json")
+    if seed < 0:
+        raise InputError(None, "--seed", f"must not be negative, got {seed}")
+    spec = SceneSpec(
+        area=area, particles=particles, rods=rods, obstacles=obstacles,
+        particle_diameter=particle_diameter, rod_length=rod_length, rod_diameter=rod_diameter,
+        obstacle_size=obstacle_size, obstacle_height=obstacle_height, gap=gap,
+        drift=None if drift is None else Drift(drift, random_walk),
+        noise=None if height_noise is None else Noise(height_noise),
+    )
+    if drift is not None and not (all(map(_finite, drift)) and _finite(random_walk) and random_walk >= 0):
+        raise InputError(None, "--drift", "velocity and --random-walk must be finite, random walk >= 0")
+    if height_noise is not None and not (_finite(height_noise) and height_noise >= 0):
+        raise InputError(None, "--height-noise", f"must be finite and >= 0, got {height_noise}")
+    scene = random_scene(spec, seed)
+    scene.save(output)
+    print(f"{output}: written: {scene.summary()}")
+
+
+def _finite(x: float) -> bool:
+    return x == x and abs(x) != float("inf")
+
+
+# -- entry point --------------------------------------------------------------------
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the CLI; returns (and, as a script, exits with) the exit code."""
+    command = typer.main.get_command(app)
+    args = sys.argv[1:] if argv is None else argv
+    try:
+        command.main(args=args, prog_name="nanoasm", standalone_mode=False)
+    except InputError as exc:
+        print(f"nanoasm: error: {exc.line()}", file=sys.stderr)
+        return 1
+    except NanoasmError as exc:
+        print(f"nanoasm: error: {exc}", file=sys.stderr)
+        return 1
+    except cx.NoArgsIsHelpError as exc:
+        # typer/click print the help for a bare group; that is not an error for the user
+        print(exc.ctx.get_help() if exc.ctx else "", file=sys.stdout)
+        return 0
+    except cx.UsageError as exc:
+        where = exc.ctx.command_path if exc.ctx else "nanoasm"
+        print(f"nanoasm: error: {exc.format_message()} (see '{where} --help')", file=sys.stderr)
+        return 2
+    except cx.Exit as exc:
+        return exc.exit_code
+    except (cx.Abort, KeyboardInterrupt):
+        print("nanoasm: interrupted", file=sys.stderr)
+        return 130
+    except cx.ClickException as exc:
+        print(f"nanoasm: error: {exc.format_message()}", file=sys.stderr)
+        return exc.exit_code or 1
+    return 0
+
+
+def script() -> None:
+    sys.exit(main())
+
+
+if __name__ == "__main__":
+    script()

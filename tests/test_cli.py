@@ -1,0 +1,110 @@
+"""The command line: exit codes, one-line errors, nothing written on failure."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+
+import pytest
+
+from nanoasm.cli import main
+from nanoasm.examples import path as example
+from nanoasm.world.scene import load_scene
+
+
+def run(capsys, *args: str) -> tuple[int, str, str]:
+    code = main(list(args))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def one_error_line(err: str) -> str:
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("nanoasm: error: ")
+    assert "Traceback" not in err
+    return lines[0]
+
+
+def test_layout_check_bundled(capsys):
+    code, out, err = run(capsys, "layout", "check", str(example("bowtie.toml")))
+    assert code == 0 and "ok" in out and "6 particle slot(s), 1 rod slot(s)" in out and err == ""
+
+
+def test_layout_check_bad_file(tmp_path, capsys):
+    p = tmp_path / "bad.toml"
+    p.write_text('format = "nanoasm.layout/1"\narea = [100, 100]\n[[target]]\nkind = "particle"\n'
+                 'at = [50, 50]\ndiameter = -3\n')
+    code, out, err = run(capsys, "layout", "check", str(p))
+    assert code == 1 and out == ""
+    assert one_error_line(err) == f"nanoasm: error: {p}: target[1].diameter: must be positive, got -3"
+
+
+def test_layout_convert_round_trip_and_refusals(tmp_path, capsys):
+    out_toml = tmp_path / "copy.toml"
+    code, out, _ = run(capsys, "layout", "convert", str(example("bowtie.toml")), "-o", str(out_toml))
+    assert code == 0 and out_toml.exists()
+    code, _, err = run(capsys, "layout", "convert", str(out_toml), "-o", str(tmp_path / "x.svg"))
+    assert code == 1 and "output must end in .toml or .json" in one_error_line(err)
+    code, _, err = run(capsys, "layout", "convert", str(out_toml), "-o", str(tmp_path / "y.json"),
+                       "--scale", "2")
+    assert code == 1 and "apply only to SVG, GDSII and DXF" in one_error_line(err)
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"format": "nanoasm.layout/1", "area": [1, 1], "target": [{"kind": "rod"')
+    code, _, err = run(capsys, "layout", "convert", str(bad), "-o", str(tmp_path / "z.toml"))
+    assert code == 1 and "truncated JSON" in one_error_line(err)
+    assert not (tmp_path / "z.toml").exists() and not (tmp_path / "y.json").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.json", "copy.toml"]
+
+
+def test_scene_random_then_check(tmp_path, capsys):
+    out_file = tmp_path / "s.toml"
+    code, out, _ = run(capsys, "scene", "random", "--particles", "25", "--rods", "3", "--obstacles", "2",
+                       "--seed", "4", "--drift", "0.3", "-0.1", "-o", str(out_file))
+    assert code == 0
+    scene = load_scene(out_file)
+    assert len(scene.objects) == 28 and scene.seed == 4 and scene.drift.velocity == (0.3, -0.1)
+    code, out, _ = run(capsys, "scene", "check", str(out_file))
+    assert code == 0 and "25 particle(s), 3 rod(s), 2 obstacle(s)" in out
+
+
+@pytest.mark.parametrize("args,fragment", [
+    (["--particles", "-1"], "--particles: must not be negative"),
+    (["--particles", "9000", "--area", "1000", "1000"], "--particles: only"),
+    (["--particle-diameter", "50", "10"], "--particle-diameter: needs 0 < MIN <= MAX"),
+    (["--seed", "-2"], "--seed: must not be negative"),
+    (["--height-noise", "nan"], "--height-noise"),
+    (["--particles", "many"], "Invalid value for '--particles'"),
+])
+def test_scene_random_refusals(tmp_path, capsys, args, fragment):
+    out_file = tmp_path / "s.toml"
+    code, _, err = run(capsys, "scene", "random", *args, "-o", str(out_file))
+    assert code in (1, 2) and fragment in one_error_line(err)
+    assert not out_file.exists()
+
+
+def test_usage_errors_are_one_line(capsys):
+    code, _, err = run(capsys, "layout", "check")
+    assert code == 2 and "Missing argument" in one_error_line(err)
+    code, _, err = run(capsys, "layout", "check", "--nope", "x")
+    assert code == 2 and "No such option" in one_error_line(err)
+    code, _, err = run(capsys, "frobnicate")
+    assert code == 2 and "No such command" in one_error_line(err)
+    code, out, _ = run(capsys, "--version")
+    assert code == 0 and out.startswith("nanoasm ")
+    code, out, _ = run(capsys)
+    assert code == 0 and "layout" in out
+
+
+@pytest.mark.skipif(shutil.which("nanoasm") is None and not os.path.exists(
+    os.path.join(os.path.dirname(sys.executable), "nanoasm")), reason="console script not installed")
+def test_console_script(tmp_path):
+    exe = shutil.which("nanoasm") or os.path.join(os.path.dirname(sys.executable), "nanoasm")
+    ok = subprocess.run([exe, "layout", "check", str(example("bowtie.toml"))], capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    (tmp_path / "e.toml").write_bytes(b"")
+    bad = subprocess.run([exe, "scene", "check", str(tmp_path / "e.toml")], capture_output=True, text=True)
+    assert bad.returncode == 1
+    assert bad.stderr.strip() == f"nanoasm: error: {tmp_path / 'e.toml'}: file is empty"
