@@ -48,7 +48,7 @@ def test_golden_values():
 
 finite = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False)
 coord = st.floats(0, 1e4, allow_nan=False)
-name = st.text(st.characters(min_codepoint=33, max_codepoint=0x2FFF, exclude_categories=("Cs",)),
+name = st.text(st.characters(min_codepoint=33, max_codepoint=0x2FFF, exclude_categories=("Cs", "Cc", "Zs", "Zl", "Zp")),
                min_size=1, max_size=12)
 
 
