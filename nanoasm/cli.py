@@ -92,7 +92,11 @@ def _read_layout(path: Path, options: dict):
         return load_layout(path)
     from nanoasm.cad.importers import import_layout
 
-    return layout_from_dict(import_layout(path, **given), str(path))
+    notes: list[str] = []
+    layout = layout_from_dict(import_layout(path, warnings=notes, **given), str(path))
+    for note in notes:
+        print(f"nanoasm: note: {note}", file=sys.stderr)
+    return layout
 
 
 def _importer_options(scale, cell, rod_diameter, area, particle_layer, rod_layer, keepout_layer,

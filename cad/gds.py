@@ -1,0 +1,304 @@
+"""GDSII importer (gdstk): the layer/datatype of each shape gives its role.
+
+Defaults (each an option):
+
+- particles ``1/0``: polygons approximating circles; centre and diameter from a
+  least-squares circle through the vertices (exact for the usual polygons, whose
+  vertices lie on the circle, however few); a polygon with fewer than 6 corners or
+  whose vertices stray from a circle is refused.
+- rods ``2/0``: a straight PATH (centre, angle and length from its spine, diameter =
+  its width; round or extended ends add their extension to the length) or a
+  rectangle polygon (long side = length, short side = diameter).
+- keep-outs ``3/0``: polygons (paths there count as their outlines).
+- working area ``0/0``: one axis-aligned rectangle; its lower-left corner is the
+  origin. Without it, ``area=(w, h)`` in nm with the origin at the file's (0, 0).
+
+The top cell is used (or ``cell``), with references and arrays flattened. Coordinates
+are converted to nm with the library's unit. Other layers and text labels are ignored.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import gdstk
+import numpy as np
+
+from nanoasm.errors import InputError
+
+from .importers import (
+    LayoutBuilder,
+    Point,
+    area_option,
+    axis_rectangle,
+    flag,
+    layer_option,
+    name_option,
+    read_bytes,
+    ring,
+)
+
+Layer = tuple[int, int]
+
+#: Fewest corners of a particle polygon (a square or a triangle is not a particle).
+MIN_CORNERS = 6
+#: Largest deviation of a particle polygon's vertices from the fitted circle, relative.
+ROUND_TOL = 0.05
+#: Largest angle (degrees) around the centre between neighbouring particle vertices.
+MAX_GAP_DEG = 90.0
+#: Rod rectangles: largest |cos| of a corner angle and relative mismatch of opposite sides.
+RECT_TOL = 0.05
+
+# GDSII record types and the byte size of each data type (0: no data ... 6: ASCII).
+_HEADER, _ENDLIB = 0x00, 0x04
+_DATA_SIZE = {0: 0, 1: 2, 2: 2, 3: 4, 4: 4, 5: 8, 6: 1}
+
+
+def import_gds(path: str | os.PathLike, *, cell: str | None = None,
+               area: tuple[float, float] | None = None,
+               particle_layer: Layer | str = (1, 0), rod_layer: Layer | str = (2, 0),
+               keepout_layer: Layer | str = (3, 0), area_layer: Layer | str = (0, 0),
+               warnings: list[str] | None = None) -> dict:
+    """Read a GDSII layout as a layout v1 dict.
+
+    Parameters
+    ----------
+    path : str or path-like
+        The GDSII stream file.
+    cell : str, optional
+        Cell to read; default: the library's only top cell.
+    area : (float, float), optional
+        Working area (nm) when the file has no rectangle on ``area_layer``.
+    particle_layer, rod_layer, keepout_layer, area_layer : (int, int) or "L/D"
+        Layer and datatype of each role.
+    warnings : list of str, optional
+        Receives a line per kind of ignored shape.
+    """
+    src = str(path)
+    roles = {"particle": layer_option("particle_layer", particle_layer),
+             "rod": layer_option("rod_layer", rod_layer),
+             "keepout": layer_option("keepout_layer", keepout_layer),
+             "area": layer_option("area_layer", area_layer)}
+    _check_distinct(roles)
+    size = area_option(area) if area is not None else None
+    cell = name_option("cell", cell) if cell is not None else None
+    _check_records(read_bytes(path), src)
+    top = _top_cell(_read(path, src), cell, src)
+    builder = LayoutBuilder(src, Path(path).stem)
+    origin, size = _working_area(top, roles["area"], size, builder)
+    _particles(top, roles["particle"], origin, builder)
+    _rods(top, roles["rod"], origin, builder)
+    for poly in top.get_polygons(include_paths=True, layer=roles["keepout"][0], datatype=roles["keepout"][1]):
+        builder.keepout(_key("polygon", roles["keepout"], poly.points),
+                        [_shift(p, origin) for p in poly.points])
+    _count_ignored(top, set(roles.values()), builder)
+    p, r = roles["particle"], roles["rod"]
+    layout = builder.build(size, f"expected circle polygons on layer {p[0]}/{p[1]} "
+                                 f"or paths/rectangles on layer {r[0]}/{r[1]}")
+    builder.report(warnings)
+    return layout
+
+
+# -- reading ------------------------------------------------------------------------
+
+def _check_distinct(roles: dict[str, Layer]) -> None:
+    seen: dict[Layer, str] = {}
+    for role, layer in roles.items():
+        if layer in seen:
+            raise InputError(None, flag(f"{role}_layer"), f"is the same layer {layer[0]}/{layer[1]} "
+                                                          f"as {flag(seen[layer] + '_layer')}")
+        seen[layer] = role
+
+
+def _check_records(raw: bytes, src: str) -> None:
+    """Walk the record stream so that gdstk never sees a file it would choke on."""
+    if raw[:4] != b"\x00\x06\x00\x02":
+        raise InputError(src, None, "not a GDSII file (it does not start with a HEADER record)")
+    pos = 0
+    while pos + 4 <= len(raw):
+        length, rtype, dtype = int.from_bytes(raw[pos:pos + 2], "big"), raw[pos + 2], raw[pos + 3]
+        size = _DATA_SIZE.get(dtype)
+        if length < 4 or length % 2 or size is None or (size and (length - 4) % size) \
+                or (size == 0 and length != 4):
+            raise InputError(src, None, f"corrupt GDSII file (bad record at byte {pos})")
+        if pos + length > len(raw):
+            break
+        if rtype == _ENDLIB:
+            return
+        pos += length
+    raise InputError(src, None, "truncated GDSII file (it ends before the ENDLIB record)")
+
+
+def _read(path: str | os.PathLike, src: str) -> gdstk.Library:
+    try:
+        unit, precision = gdstk.gds_units(str(path))
+        if not (math.isfinite(unit) and unit > 0 and math.isfinite(precision) and precision > 0):
+            raise InputError(src, None, f"invalid library units ({unit!r} m, precision {precision!r} m)")
+        return gdstk.read_gds(str(path), unit=1e-9)
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise InputError(src, None, f"cannot read GDSII ({exc})") from None
+
+
+def _top_cell(lib: gdstk.Library, name: str | None, src: str) -> gdstk.Cell:
+    cells = {c.name: c for c in lib.cells}
+    if not cells:
+        raise InputError(src, None, "the library has no cells")
+    if name is not None:
+        if name not in cells:
+            raise InputError(src, "--cell", f"no cell {name!r} (cells: {_names(cells)})")
+        return cells[name]
+    tops = lib.top_level()
+    if len(tops) != 1:
+        raise InputError(src, None, f"{len(tops)} top cells ({_names(c.name for c in tops)}); "
+                                    "choose one with --cell")
+    return tops[0]
+
+
+def _names(names, limit: int = 8) -> str:
+    names = sorted(names)
+    more = f", ... ({len(names)} in all)" if len(names) > limit else ""
+    return ", ".join(names[:limit]) + more
+
+
+# -- shapes -------------------------------------------------------------------------
+
+def _key(kind: str, layer: Layer, points: np.ndarray) -> str:
+    x, y = np.mean(points, axis=0)
+    return f"{kind} on layer {layer[0]}/{layer[1]} at ({x:.6g}, {y:.6g}) nm"
+
+
+def _shift(p, origin: Point) -> Point:
+    return float(p[0]) - origin[0], float(p[1]) - origin[1]
+
+
+def _working_area(top: gdstk.Cell, layer: Layer, size: Point | None,
+                  b: LayoutBuilder) -> tuple[Point, Point]:
+    """``(origin, (width, height))`` in nm."""
+    polys = top.get_polygons(include_paths=True, layer=layer[0], datatype=layer[1])
+    where = f"layer {layer[0]}/{layer[1]}"
+    if len(polys) > 1:
+        b.fail(where, f"{len(polys)} shapes on the working-area layer; expected one rectangle")
+    if not polys:
+        if size is None:
+            b.fail(None, f"no working area: draw one rectangle on layer {layer[0]}/{layer[1]} "
+                         "or give --area W H")
+        return (0.0, 0.0), size
+    if size is not None:
+        b.fail("--area", f"the file already has a working-area rectangle on {where}; drop --area")
+    rect = axis_rectangle(polys[0].points)
+    if rect is None:
+        b.fail(_key("polygon", layer, polys[0].points), "the working area must be an axis-aligned rectangle")
+    x0, y0, w, h = rect
+    return (x0, y0), (w, h)
+
+
+def _particles(top: gdstk.Cell, layer: Layer, origin: Point, b: LayoutBuilder) -> None:
+    polys = top.get_polygons(include_paths=True, layer=layer[0], datatype=layer[1])
+    if len(polys) > 1:  # writers split polygons of many vertices (gdstk: over 199); rejoin
+        polys = gdstk.boolean(polys, [], "or", precision=1e-3)
+    for poly in polys:
+        key = _key("polygon", layer, poly.points)
+        pts = np.array(ring(poly.points))
+        if len(pts) < MIN_CORNERS:
+            b.fail(key, f"has {len(pts)} corners; a particle must be a circle polygon "
+                        f"(at least {MIN_CORNERS} vertices)")
+        centre, radius, deviation, gap = fit_circle(pts)
+        if deviation > ROUND_TOL or gap > MAX_GAP_DEG:
+            b.fail(key, f"is not round (its vertices stray up to {deviation:.0%} from a circle, "
+                        f"largest gap {gap:.0f} deg); a particle must be a circle polygon")
+        b.particle(key, _shift(centre, origin), 2 * radius)
+
+
+def fit_circle(points: np.ndarray) -> tuple[Point, float, float, float]:
+    """Least-squares circle through ``(N, 2)`` vertices.
+
+    Returns
+    -------
+    centre, radius, deviation, gap
+        Largest relative distance of a vertex from the circle, and the largest angle
+        (degrees) between angularly neighbouring vertices seen from the centre.
+    """
+    mean = points.mean(axis=0)
+    q = points - mean
+    a = np.column_stack([2 * q, np.ones(len(q))])
+    (cx, cy, c), *_ = np.linalg.lstsq(a, (q ** 2).sum(axis=1), rcond=None)
+    radius = math.sqrt(max(c + cx * cx + cy * cy, 0.0))
+    d = q - (cx, cy)
+    rho = np.hypot(d[:, 0], d[:, 1])
+    deviation = float(np.max(np.abs(rho - radius)) / radius) if radius > 0 else math.inf
+    angles = np.sort(np.arctan2(d[:, 1], d[:, 0]))
+    gaps = np.diff(np.concatenate([angles, angles[:1] + 2 * math.pi]))
+    centre = (float(mean[0] + cx), float(mean[1] + cy))
+    return centre, radius, deviation, float(np.degrees(gaps.max()))
+
+
+def _rods(top: gdstk.Cell, layer: Layer, origin: Point, b: LayoutBuilder) -> None:
+    for path in top.get_paths(layer=layer[0], datatype=layer[1]):
+        spine = path.spine()
+        for i in range(path.num_paths):
+            if (path.layers[i], path.datatypes[i]) == layer:
+                _path_rod(spine, path.widths()[:, i], path.ends[i], layer, origin, b)
+    for poly in top.get_polygons(include_paths=False, layer=layer[0], datatype=layer[1]):
+        _rectangle_rod(poly.points, layer, origin, b)
+
+
+def _path_rod(spine: np.ndarray, widths: np.ndarray, ends, layer: Layer, origin: Point,
+              b: LayoutBuilder) -> None:
+    key = _key("path", layer, spine)
+    w = float(widths.max())  # a GDSII PATH has one width
+    if not w > 0:
+        b.fail(key, "path has no width (the width is the rod diameter)")
+    start, end = spine[0], spine[-1]
+    axis = end - start
+    length = float(np.hypot(*axis))
+    if length == 0:
+        b.fail(key, "path has zero length")
+    rel = spine - start
+    along = rel @ axis / length
+    across = np.abs(rel[:, 0] * axis[1] - rel[:, 1] * axis[0]) / length
+    if across.max() > 0.01 * w or np.any(np.diff(along) < 0):
+        b.fail(key, "path bends; a rod path must be straight")
+    if ends == "flush":
+        extension = 0.0
+    elif ends in ("round", "extended"):
+        extension = w
+    elif isinstance(ends, tuple) and len(ends) == 2:
+        extension = float(ends[0]) + float(ends[1])
+    else:
+        b.fail(key, f"unsupported path ends {ends!r}")
+    b.rod(key, _shift(start, origin), _shift(end, origin), w, extension)
+
+
+def _rectangle_rod(points: np.ndarray, layer: Layer, origin: Point, b: LayoutBuilder) -> None:
+    key = _key("polygon", layer, points)
+    corners = np.array(ring(points))
+    if len(corners) != 4:
+        b.fail(key, f"has {len(corners)} corners; a rod polygon must be a rectangle "
+                    "(or draw the rod as a path)")
+    edges = np.roll(corners, -1, axis=0) - corners
+    lengths = np.hypot(edges[:, 0], edges[:, 1])
+    cosines = [abs(edges[k] @ edges[k - 1]) / (lengths[k] * lengths[k - 1]) for k in range(4)]
+    sides = ((lengths[0] + lengths[2]) / 2, (lengths[1] + lengths[3]) / 2)
+    if max(cosines) > RECT_TOL or abs(lengths[0] - lengths[2]) > RECT_TOL * min(sides) \
+            or abs(lengths[1] - lengths[3]) > RECT_TOL * min(sides):
+        b.fail(key, "is not a rectangle; a rod polygon must be a rectangle (or draw the rod as a path)")
+    if abs(sides[0] - sides[1]) <= 1e-9 * max(sides):
+        b.fail(key, "is a square; a rod rectangle needs a long side (its axis)")
+    k = 0 if sides[0] > sides[1] else 1
+    length, diameter = sides[k], sides[1 - k]
+    axis = (edges[k] - edges[k + 2]) / 2
+    unit = axis / np.hypot(*axis)
+    centre = corners.mean(axis=0)
+    half = unit * length / 2
+    b.rod(key, _shift(centre - half, origin), _shift(centre + half, origin), diameter)
+
+
+def _count_ignored(top: gdstk.Cell, used: set[Layer], b: LayoutBuilder) -> None:
+    for poly in top.get_polygons(include_paths=True):
+        if (poly.layer, poly.datatype) not in used:
+            b.ignore(f"shape(s) on layer {poly.layer}/{poly.datatype}")
+    labels = top.get_labels()
+    if labels:
+        b.ignore("text label(s)", len(labels))
