@@ -23,7 +23,9 @@ class InputError(NanoasmError):
 
     def line(self) -> str:
         parts = [p for p in (self.source, self.key) if p]
-        return ": ".join([*parts, self.problem])
+        text = ": ".join([*parts, self.problem])
+        # one line, whatever a file name or key holds
+        return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 class InstrumentLimitError(NanoasmError):

@@ -56,6 +56,10 @@ def check_number(
         fail(f"must be {want}, got {type_name(value)} {_show(value)}".rstrip())
     if integer and not isinstance(value, int):
         fail(f"must be an integer, got {_show(value)}")
+    if isinstance(value, int) and not integer and abs(value) > 2**1023:
+        fail(f"must be finite, got a number too large for a float ({str(value)[:12]}...)")
+    if integer and abs(value) >= 2**63:
+        fail("must be an integer below 2**63")
     if not math.isfinite(value):
         fail(f"must be finite, got {_show(value)}")
     if positive and not value > 0:
@@ -81,6 +85,8 @@ class Table:
 
     # -- locating -------------------------------------------------------------------
     def key(self, name: str) -> str:
+        if not isinstance(name, str) or not name or not name.isprintable() or " " in name:
+            name = repr(name)
         return f"{self.path}.{name}" if self.path else name
 
     def error(self, name: str | None, problem: str) -> InputError:
