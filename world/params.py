@@ -1,0 +1,297 @@
+"""Physical parameters of the simulated world, grouped in the scene file's tables.
+
+Every default comes from the seed dissertation where it gives one (section cited in
+the field's ``source``), otherwise it is a realistic value with a note. The scene's
+``[drift]`` and ``[noise]`` tables have fixed keys (both required when the table is
+given); every other table and key is optional. The world's truth is not the planner's
+model: objects get a seeded per-object scatter in friction, adhesion, pivot and path
+(``scatter`` keys), and faults are off (probability 0) unless a scene turns them on.
+
+``WorldParams.from_tables`` reads the tables of a scene, ``to_tables`` writes back only
+what differs from the defaults, and :func:`params_markdown` renders the reference.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+
+from nanoasm.errors import InputError
+from nanoasm.schema import Table
+
+from .instrument import InstrumentConfig
+from .param_spec import ParamError, from_table, markdown_rows, param, to_table, validate
+
+
+@dataclass(frozen=True)
+class TipParams:
+    """The tip apex."""
+
+    radius: float = param(10.0, "nm", "apex radius", source="seed 3.4.1: apex diameter several nm "
+                          "to tens of nm", positive=True)
+    half_angle: float = param(20.0, "deg", "open half angle γ of the apex; θ = θx + γ (eq. 4.1)",
+                              source="not given in the seed; sharpened Si3N4 tips are 15-35°",
+                              positive=True, hi=80.0)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class CantileverParams:
+    """The lever, the photodiode and its spurious signals (ch. 3)."""
+
+    k: float = param(0.12, "N/m", "normal spring constant", source="seed 3.4.2", positive=True)
+    K_n: float = param(89.0, "nm/V", "normal signal gain δz = K_n S_n", source="seed 3.4.2, eq. 3.13",
+                       positive=True)
+    C1: float = param(1.3, "nm/V", "lateral tip displacement per volt of S̄l, δy = C1 S̄l",
+                      source="seed 3.6.3; K_n h/l = 1.34", nonnegative=True)
+    C2: float = param(23.0, "nm/V", "tip displacement along the lever per volt of S̄n, δx = C2 S̄n",
+                      source="seed 3.6.4", nonnegative=True)
+    lateral_gain: float = param(37.8, "nN/V", "k_l K_l / h, lateral force per volt of S_l",
+                                source="seed 3.4.3", positive=True)
+    alpha: float = param(0.18, "-", "normal-to-lateral cross-talk α, eq. 3.28", source="seed 3.5, "
+                         "Fig. 3.17", lo=-1.0, hi=1.0)
+    length: float = param(200000.0, "nm", "lever length l", source="seed 3.4.2: 200 µm", positive=True)
+    tip_height: float = param(3000.0, "nm", "tip height h, lever thickness included",
+                              source="seed 3.4.2: 3 µm", positive=True)
+    signal_limit: float = param(10.0, "V", "photodiode output saturates at ±signal_limit",
+                                source="seed 3.6.4", positive=True)
+    reflection_n: float = param(0.8, "V", "substrate-reflection offset of S_n near the surface, "
+                                "A(i, j) of eq. 3.28", source="seed Fig. 3.14: -2.0 V to -1.2 V")
+    reflection_l: float = param(0.12, "V", "offset of S_l near the surface, B(i, j) of eq. 3.28",
+                                source="seed Fig. 3.14: 0 V to 0.12 V")
+    signal_rms: float = param(0.005, "V", "photodiode noise per sample",
+                              source="not given in the seed; a quiet quad detector", nonnegative=True)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class FrictionParams:
+    """Friction coefficients (ch. 3.4.3, eq. 4.5) and their per-object scatter."""
+
+    mu_ts: float = param(0.086, "-", "tip-substrate friction coefficient μ", source="seed 3.4.3",
+                         nonnegative=True)
+    mu_os: float = param(0.2, "-", "object-substrate sliding friction μos, eq. 4.5",
+                         source="not given in the seed; Fig. 4.3 plots a range", nonnegative=True)
+    nu: float = param(0.2, "-", "shear coefficient ν on the object-substrate adhesion, eq. 4.5",
+                      source="seed Fig. 4.14-4.15", nonnegative=True)
+    scatter: float = param(0.2, "-", "relative standard deviation of μos and ν per object",
+                           source="the truth is not the model; 20 %", nonnegative=True, hi=1.0)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class AdhesionParams:
+    """Adhesion forces (ch. 4.2.1): measured tip-substrate, others scaled by contact area."""
+
+    tip_substrate: float = param(10.0, "nN", "tip-substrate adhesion F_ts^a, as a force curve measures it",
+                                 source="not given in the seed; Si3N4 tips in air, 5-20 nN",
+                                 nonnegative=True)
+    object_ratio: float = param(20.0, "-", "object-substrate over tip-substrate adhesion, "
+                                "F_os^a / F_ts^a; scales with contact area", source="seed Fig. 4.14",
+                                nonnegative=True)
+    pull_off_fraction: float = param(0.75, "-", "pull-off force over adhesion force, JKR",
+                                     source="seed 4.2.1", positive=True, hi=1.0)
+    scatter: float = param(0.3, "-", "relative standard deviation of adhesion per object",
+                           source="the truth is not the model; 30 %", nonnegative=True, hi=1.0)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class PushParams:
+    """How far the true motion of a pushed object departs from the model (ch. 4.3.2)."""
+
+    pivot_scatter: float = param(0.03, "-", "standard deviation of a rod's pivot position, fraction "
+                                 "of its length, about eq. 4.10", source="not in the seed; 3 %",
+                                 nonnegative=True, hi=0.5)
+    path_scatter: float = param(2.0, "deg", "standard deviation of a particle's direction of motion "
+                                "about the push direction", source="not in the seed; 2°",
+                                nonnegative=True, hi=45.0)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class VdwParams:
+    """Random lateral error of objects that end close to others (seed 3.6.1)."""
+
+    range: float = param(20.0, "nm", "gap to another object below which the error acts",
+                         source="seed 3.6.1 gives no number; 20 nm", nonnegative=True)
+    amplitude: float = param(5.0, "nm", "standard deviation of the error per axis",
+                             source="seed 3.6.1 'a small position error'; 5 nm", nonnegative=True)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class TimingParams:
+    """How long the instrument takes for each activity (instrument time, not wall time)."""
+
+    full_scan_line: float = param(1.0, "s", "one full-scan line, trace and retrace (1 Hz)",
+                                  source="seed 9.2: several minutes per image (512 lines: 8.5 min)",
+                                  positive=True)
+    scan_line_sample: float = param(0.001, "s", "one sample of a local scan line (tapping mode)",
+                                    source="same tip speed as a 1 Hz, 512-pixel full scan",
+                                    positive=True)
+    scan_line_overhead: float = param(0.2, "s", "settling before each local scan line",
+                                      source="not in the seed", nonnegative=True)
+    mode_switch: float = param(2.0, "s", "switch between tapping (scan) and contact (push) mode, "
+                               "approach or retract", source="seed 5.4 describes the switch; 2 s",
+                               nonnegative=True)
+    push_speed: float = param(200.0, "nm/s", "tip speed while pushing",
+                              source="seed 4.2.2: >100 particles in half an hour", positive=True)
+    travel_speed: float = param(2000.0, "nm/s", "tip speed while lifted", source="not in the seed",
+                                positive=True)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class DriftParams:
+    """Thermal drift of scanner versus sample: the scene's fixed `[drift]` table."""
+
+    velocity: tuple[float, float] = param(
+        (0.06, -0.04), "nm/s", "steady drift velocity: 260 nm per hour",
+        source="seed 3.6.1: several hundred nm", required=True)
+    random_walk: float = param(
+        5e-4, "nm/s per √s", "intensity q of the random walk on the velocity; "
+        "Var x(t) = q² t³ / 3 per axis: 62 nm rms after 1 h, 320 nm after 3 h", source="seed 3.6.1",
+        required=True, nonnegative=True)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class CreepParams:
+    """Logarithmic piezo creep after large moves: γ s log10(1 + t / τ) along the step s."""
+
+    amplitude: float = param(0.01, "1/decade", "creep γ, fraction of the step per decade of time",
+                             source="typical open-loop piezo tubes 0.01-0.03; seed 3.7 defers to its "
+                             "ref. [50]", nonnegative=True, hi=0.5)
+    tau: float = param(0.1, "s", "time constant τ", source="typical t0 = 0.1 s", positive=True)
+    min_step: float = param(500.0, "nm", "smaller moves add no creep term", source="model economy",
+                            nonnegative=True)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class NoiseParams:
+    """Measurement noise: the scene's fixed `[noise]` table."""
+
+    height_rms: float = param(0.3, "nm", "height noise per sample", required=True,
+                              source="typical tapping-mode noise floor in air", nonnegative=True)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
+class FaultParams:
+    """Rare failures, per push unless stated; all off by default."""
+
+    stuck_object: float = param(0.0, "-", "probability that a pushed object does not move",
+                                nonnegative=True, hi=1.0)
+    tip_slip: float = param(0.0, "-", "probability that the tip slips over the object mid-push",
+                            nonnegative=True, hi=1.0)
+    lost_object: float = param(0.0, "-", "probability that a pushed object leaves the surface",
+                               nonnegative=True, hi=1.0)
+    tip_blunting: float = param(0.0, "-", "probability that the tip apex blunts", nonnegative=True,
+                                hi=1.0)
+    blunting_step: float = param(5.0, "nm", "apex radius gained per blunting", nonnegative=True)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+_GROUPS: dict[str, type] = {
+    "tip": TipParams, "cantilever": CantileverParams, "friction": FrictionParams,
+    "adhesion": AdhesionParams, "push": PushParams, "vdw": VdwParams, "scanner": InstrumentConfig,
+    "timing": TimingParams, "drift": DriftParams, "creep": CreepParams, "noise": NoiseParams,
+    "faults": FaultParams,
+}
+
+#: The scene tables whose keys :class:`WorldParams` owns, in documentation order.
+TABLES: tuple[str, ...] = tuple(_GROUPS)
+
+
+@dataclass(frozen=True)
+class WorldParams:
+    """All physical parameters of a simulated world, one field per table."""
+
+    tip: TipParams = field(default_factory=TipParams)
+    cantilever: CantileverParams = field(default_factory=CantileverParams)
+    friction: FrictionParams = field(default_factory=FrictionParams)
+    adhesion: AdhesionParams = field(default_factory=AdhesionParams)
+    push: PushParams = field(default_factory=PushParams)
+    vdw: VdwParams = field(default_factory=VdwParams)
+    scanner: InstrumentConfig = field(default_factory=InstrumentConfig)
+    timing: TimingParams = field(default_factory=TimingParams)
+    drift: DriftParams = field(default_factory=DriftParams)
+    creep: CreepParams = field(default_factory=CreepParams)
+    noise: NoiseParams = field(default_factory=NoiseParams)
+    faults: FaultParams = field(default_factory=FaultParams)
+
+    def __post_init__(self) -> None:
+        for name, cls in _GROUPS.items():
+            if not isinstance(getattr(self, name), cls):
+                raise ParamError(name, f"must be a {cls.__name__}")
+
+    @classmethod
+    def from_tables(cls, tables: Mapping[str, Table]) -> WorldParams:
+        """Read the given tables (any subset of :data:`TABLES`); absent ones keep defaults.
+
+        A bad key or value raises :class:`~nanoasm.errors.InputError` naming the file
+        and the key path, e.g. ``scene.toml: cantilever.Kn: unknown key (did you mean 'K_n'?)``.
+        """
+        kwargs = {}
+        for name, t in tables.items():
+            if name not in _GROUPS:
+                raise InputError(t.source, t.path or name,
+                                 f"unknown table (world tables: {', '.join(TABLES)})")
+            kwargs[name] = from_table(_GROUPS[name], t)
+        return cls(**kwargs)
+
+    @classmethod
+    def from_document(cls, doc: Table) -> WorldParams:
+        """Read every world table present in a scene document (other keys are the caller's)."""
+        return cls.from_tables({n: doc.table(n) for n in TABLES if n in doc})
+
+    def to_tables(self) -> dict[str, dict]:
+        """Non-default values only, per table; ``from_tables`` of the result is equal."""
+        out = {}
+        for name in TABLES:
+            values = to_table(getattr(self, name))
+            if values:
+                out[name] = values
+        return out
+
+
+def params_markdown() -> str:
+    """Reference of every world table, key, default, unit and meaning, as Markdown."""
+    lines = []
+    for name, cls in _GROUPS.items():
+        doc = (cls.__doc__ or "").strip().splitlines()[0]
+        lines += [f"### `[{name}]`", "", doc, "", "| key | default | unit | meaning | source |",
+                  "| --- | --- | --- | --- | --- |", *markdown_rows(cls), ""]
+    return "\n".join(lines).rstrip() + "\n"
+
+
+__all__ = [
+    "TABLES", "AdhesionParams", "CantileverParams", "CreepParams", "DriftParams", "FaultParams",
+    "FrictionParams", "NoiseParams", "PushParams", "TimingParams", "TipParams", "VdwParams",
+    "WorldParams", "params_markdown",
+]
+
