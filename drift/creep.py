@@ -1,0 +1,200 @@
+"""Piezo creep after large scanner moves, as a known input to the drift filter.
+
+After a move of the scanner by a step ``s`` (nm vector) completed at ``t_s``, the piezo
+keeps extending along the step: ``c s log10(1 + (t - t_s) / τ)``. The tip then sits that
+much further along ``s`` than commanded, so the sample appears shifted back: creep adds
+``-c s log10(1 + (t - t_s) / τ)`` to the measured offset (the convention of
+``nanoasm.world.drift_model``: offset = thermal - creep). The filter subtracts this
+input from each measurement and adds it to each predicted offset; its state keeps the
+thermal drift alone.
+
+Only recent large moves matter: the remaining creep rate of a move,
+``c |s| / (ln 10 (τ + t - t_s))``, falls as ``1/t``. :class:`CreepHistory` freezes the
+creep of a move whose rate has fallen below ``rate_tol`` into a constant and forgets
+the move, so the input stays continuous and the list stays short.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class CreepModelParams:
+    """Parameters of the creep input.
+
+    Attributes
+    ----------
+    amplitude : float
+        ``c``, fraction of the step per decade of time (``>= 0``; 0 turns creep off).
+    tau : float
+        ``τ`` in s (``> 0``).
+    min_step : float
+        Moves shorter than this (nm) add no creep term (``>= 0``).
+    rate_tol : float
+        A move whose remaining creep rate is below this (nm/s) is frozen (``> 0``).
+    max_moves : int
+        At most this many moves are kept; the oldest are frozen first (``>= 1``).
+    amplitude_std : float
+        Standard deviation of ``c`` (per decade, ``>= 0``): how well the amplitude is
+        known. The creep input then carries the covariance ``amplitude_std² g gᵀ``, ``g``
+        the creep per unit ``c`` of the kept moves, which widens the predicted offset
+        and the measurement noise after a large move instead of gating every
+        measurement out when ``c`` is off. 0 treats the input as exact.
+    """
+
+    amplitude: float = 0.01
+    tau: float = 0.1
+    min_step: float = 500.0
+    rate_tol: float = 1e-3
+    max_moves: int = 256
+    amplitude_std: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, lo, strict in (("amplitude", 0.0, False), ("tau", 0.0, True),
+                                 ("min_step", 0.0, False), ("rate_tol", 0.0, True),
+                                 ("amplitude_std", 0.0, False)):
+            value = getattr(self, name)
+            if not (isinstance(value, numbers.Real) and math.isfinite(value)
+                    and (value > lo if strict else value >= lo)):
+                raise ValueError(f"{name} must be a finite number, "
+                                 f"{'positive' if strict else 'not negative'}; got {value!r}")
+        if not isinstance(self.max_moves, numbers.Integral) or self.max_moves < 1:
+            raise ValueError(f"max_moves must be a positive integer, got {self.max_moves!r}")
+
+
+def creep_offset(t: float, move_times: np.ndarray, move_steps: np.ndarray,
+                 amplitude: float, tau: float) -> np.ndarray:
+    """Offset added by creep at time ``t``: ``-c Σ s_i log10(1 + max(t - t_i, 0) / τ)``.
+
+    Parameters
+    ----------
+    t : float
+        Time (s), on the same clock as ``move_times``.
+    move_times : (n,) array
+        Completion times of the moves (s).
+    move_steps : (n, 2) array
+        Their steps (nm).
+    amplitude, tau : float
+        ``c`` (per decade) and ``τ`` (s).
+
+    Returns
+    -------
+    (2,) array
+        In nm.
+    """
+    times = np.asarray(move_times, float).reshape(-1)
+    steps = np.asarray(move_steps, float).reshape(-1, 2)
+    if times.size == 0:
+        return np.zeros(2)
+    weights = np.log10(1.0 + np.maximum(t - times, 0.0) / tau)
+    return -amplitude * (weights @ steps)
+
+
+def creep_rate(t: float, move_times: np.ndarray, move_steps: np.ndarray,
+               amplitude: float, tau: float) -> np.ndarray:
+    """Remaining creep speed of each move at ``t``: ``c |s_i| / (ln 10 (τ + t - t_i))``.
+
+    Returns
+    -------
+    (n,) array
+        In nm/s (the full rate at ``t = t_i`` for moves not yet begun).
+    """
+    times = np.asarray(move_times, float).reshape(-1)
+    lengths = np.hypot(*np.asarray(move_steps, float).reshape(-1, 2).T)
+    return amplitude * lengths / (math.log(10.0) * (tau + np.maximum(t - times, 0.0)))
+
+
+class CreepHistory:
+    """The recent large moves and the frozen creep of the older ones.
+
+    Times are in s on the caller's clock (the drift filter passes times relative to its
+    epoch). Moves must be recorded in time order.
+    """
+
+    def __init__(self, params: CreepModelParams):
+        self.params = params
+        self.frozen = np.zeros(2)
+        self._times: list[float] = []
+        self._steps: list[tuple[float, float]] = []
+
+    @property
+    def times(self) -> np.ndarray:
+        """(n,) array: completion times of the kept moves."""
+        return np.asarray(self._times, float)
+
+    @property
+    def steps(self) -> np.ndarray:
+        """(n, 2) array: their steps (nm)."""
+        return np.asarray(self._steps, float).reshape(-1, 2)
+
+    def __len__(self) -> int:
+        return len(self._times)
+
+    def record(self, t: float, step) -> bool:
+        """Keep the move ``step`` (nm) completed at ``t`` if it is long enough.
+
+        Returns
+        -------
+        bool
+            Whether the move was kept (long enough and creep switched on).
+        """
+        sx, sy = (float(v) for v in np.asarray(step, float).reshape(2))
+        if not all(math.isfinite(v) for v in (t, sx, sy)):
+            raise ValueError("move time and step must be finite")
+        if self._times and t < self._times[-1]:
+            raise ValueError(f"moves must be recorded in time order: t={t} precedes "
+                             f"the last move at {self._times[-1]}")
+        p = self.params
+        if p.amplitude == 0.0 or math.hypot(sx, sy) < p.min_step:
+            return False
+        self.prune(t)
+        self._times.append(float(t))
+        self._steps.append((sx, sy))
+        if len(self._times) > p.max_moves:
+            self._freeze(np.arange(len(self._times)) < len(self._times) - p.max_moves, t)
+        return True
+
+    def offset(self, t: float) -> np.ndarray:
+        """(2,) array: the creep input (nm) at ``t``, frozen part included."""
+        p = self.params
+        return self.frozen + creep_offset(t, self.times, self.steps, p.amplitude, p.tau)
+
+    def cov_sqrt(self, t: float) -> np.ndarray:
+        """(2, 1) array: factor of the creep input's covariance at ``t``,
+        ``amplitude_std g`` with ``g`` the creep per unit amplitude of the kept moves."""
+        p = self.params
+        g = creep_offset(t, self.times, self.steps, 1.0, p.tau)
+        return p.amplitude_std * g[:, None]
+
+    def cov(self, t: float) -> np.ndarray:
+        """(2, 2) array: covariance (nm²) of the creep input at ``t`` from the uncertain
+        amplitude of the kept moves, ``amplitude_std² g gᵀ``."""
+        c = self.cov_sqrt(t)
+        return c @ c.T
+
+    def prune(self, t: float) -> int:
+        """Freeze, at ``t``, the moves whose creep rate is below ``rate_tol``.
+
+        Moves completed after ``t`` are kept. Returns the number of moves frozen.
+        """
+        if not self._times:
+            return 0
+        p = self.params
+        times = self.times
+        slow = (times <= t) & (creep_rate(t, times, self.steps, p.amplitude, p.tau) < p.rate_tol)
+        return self._freeze(slow, t)
+
+    def _freeze(self, mask: np.ndarray, t: float) -> int:
+        if not mask.any():
+            return 0
+        p = self.params
+        times, steps = self.times, self.steps
+        self.frozen = self.frozen + creep_offset(t, times[mask], steps[mask], p.amplitude, p.tau)
+        self._times = times[~mask].tolist()
+        self._steps = [tuple(s) for s in steps[~mask].tolist()]
+        return int(mask.sum())

@@ -1,0 +1,429 @@
+"""The stateful drift filter the executor talks to: a thin layer over the pure functions.
+
+:class:`DriftFilter` keeps the state ``[dx, dy, vx, vy]`` (thermal drift only), the creep
+history (a known input), the review history and the measurement log. Times are given
+on the instrument clock (s) and stored relative to the filter's ``epoch``, so steps stay
+exact for clocks around 10⁷ s. Offsets are in nm, in the sense of
+``z = measured position in the scanner frame - believed position in the layout frame``.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass, field, replace
+from typing import NamedTuple
+
+import numpy as np
+
+from .creep import CreepHistory, CreepModelParams
+from .gating import (
+    Selection,
+    gate_threshold,
+    nis_sqrt,
+    select_consistent,
+    weighted_mean,
+)
+from .kalman import H_OFFSET, STATE_DIM, process_noise_sqrt, symmetrize
+from .records import HistoryEntry, JointMeasurement, Measurement, OffsetEstimate
+from .square_root import predict_sqrt, psd_sqrt, tria, update_sqrt
+
+
+def _finite(name: str, value, *, positive: bool = False, nonnegative: bool = False) -> None:
+    """Raise ``ValueError`` naming ``name`` unless ``value`` is a finite real number
+    (and positive, or not negative, when asked)."""
+    ok = isinstance(value, numbers.Real) and math.isfinite(value)
+    if ok and positive:
+        ok = value > 0
+    if ok and nonnegative:
+        ok = value >= 0
+    if not ok:
+        need = ", positive" if positive else ", not negative" if nonnegative else ""
+        raise ValueError(f"{name} must be a finite number{need}; got {value!r}")
+
+
+@dataclass(frozen=True)
+class DriftFilterParams:
+    """Tuning of :class:`DriftFilter`.
+
+    Attributes
+    ----------
+    q : float
+        Velocity random-walk intensity (nm²/s³); a drift whose velocity wanders by
+        ``w`` nm/s per √s has ``q = w²``.
+    q_offset : float
+        White-noise intensity on the offset (nm²/s).
+    offset_std : float
+        Prior standard deviation of the offset at the epoch (nm, ``> 0``).
+    velocity_std : float
+        Prior standard deviation of the drift velocity (nm/s, ``> 0``).
+    measurement_std : float
+        Default standard deviation of a measured offset per axis (nm, ``> 0``).
+    gate_probability : float
+        χ² gate probability in (0, 1).
+    min_consensus : int
+        How many different objects must agree with one another against the prior before
+        the filter reads a drift jump rather than objects that moved: in one joint
+        measurement (see :func:`nanoasm.drift.gating.select_consistent`), or in
+        consecutive measurements with nothing accepted between them (at least 2; 0
+        disables drift jumps).
+    time_tolerance : float
+        A time up to this much (s) before the filter's time counts as the same time.
+    creep : CreepModelParams
+        The creep input.
+    """
+
+    q: float = 1e-6
+    q_offset: float = 0.0
+    offset_std: float = 10.0
+    velocity_std: float = 0.5
+    measurement_std: float = 2.0
+    gate_probability: float = 0.997
+    min_consensus: int = 2
+    time_tolerance: float = 1e-6
+    creep: CreepModelParams = field(default_factory=CreepModelParams)
+
+    def __post_init__(self) -> None:
+        _finite("q", self.q, nonnegative=True)
+        _finite("q_offset", self.q_offset, nonnegative=True)
+        for name in ("offset_std", "velocity_std", "measurement_std"):
+            _finite(name, getattr(self, name), positive=True)
+        _finite("time_tolerance", self.time_tolerance, nonnegative=True)
+        _finite("gate_probability", self.gate_probability)
+        if not 0.0 < self.gate_probability < 1.0:
+            raise ValueError(f"gate_probability must lie in (0, 1), got {self.gate_probability!r}")
+        if not isinstance(self.min_consensus, numbers.Integral) or self.min_consensus < 0:
+            raise ValueError(f"min_consensus must be a non-negative integer, got {self.min_consensus!r}")
+        if not isinstance(self.creep, CreepModelParams):
+            raise TypeError(f"creep must be a CreepModelParams, got {type(self.creep).__name__}")
+
+
+class DriftFilter:
+    """Kalman filter of the scanner-versus-layout offset, with creep and gating.
+
+    The covariance is carried as a square-root factor (:mod:`nanoasm.drift.square_root`),
+    so huge priors, long gaps and precise measurements never make it indefinite.
+
+    Parameters
+    ----------
+    params : DriftFilterParams
+    epoch : float
+        Instrument time (s) of the prior; all times are stored relative to it.
+    x0 : (4,) array, optional
+        Prior state; zero offset and velocity by default.
+    P0 : (4, 4) array, optional
+        Prior covariance; ``diag(offset_std², offset_std², velocity_std², velocity_std²)``
+        by default.
+    """
+
+    def __init__(self, params: DriftFilterParams | None = None, *, epoch: float = 0.0,
+                 x0: np.ndarray | None = None, P0: np.ndarray | None = None):
+        self.params = params if params is not None else DriftFilterParams()
+        _finite("epoch", epoch)
+        p = self.params
+        self.epoch = float(epoch)
+        self._tau = 0.0
+        self._x = np.zeros(STATE_DIM) if x0 is None else np.asarray(x0, float).copy()
+        if self._x.shape != (STATE_DIM,) or not np.all(np.isfinite(self._x)):
+            raise ValueError(f"x0 must be a finite (4,) array, got shape {self._x.shape}")
+        if P0 is None:
+            P0 = np.diag([p.offset_std**2] * 2 + [p.velocity_std**2] * 2)
+        P0 = np.asarray(P0, float)
+        if P0.shape != (STATE_DIM, STATE_DIM):
+            raise ValueError(f"P0 must be a (4, 4) array, got shape {P0.shape}")
+        self._L = psd_sqrt(P0)
+        self.creep = CreepHistory(p.creep)
+        self.history: list[HistoryEntry] = []
+        self._commit(0.0, 0.0, self._x, self._L, self._x, self._L, np.zeros((STATE_DIM, 0)), "start")
+        self.measurements: list[Measurement] = []
+        self._anchor = (0, 0.0)  # history index and tau of the last accepted state
+        self._streak: list[_Batch] = []  # batches rejected since then
+
+    # -- state ----------------------------------------------------------------------------
+    @property
+    def time(self) -> float:
+        """Instrument time (s) of the current estimate."""
+        return self.epoch + self._tau
+
+    @property
+    def x(self) -> np.ndarray:
+        """(4,) array: current thermal-drift state ``[dx, dy, vx, vy]`` (a copy)."""
+        return self._x.copy()
+
+    @property
+    def P(self) -> np.ndarray:
+        """(4, 4) array: its covariance."""
+        return _gram(self._L)
+
+    @property
+    def P_sqrt(self) -> np.ndarray:
+        """(4, 4) array: lower-triangular factor of :attr:`P` (a copy)."""
+        return self._L.copy()
+
+    def _relative(self, t: float) -> tuple[float, float]:
+        """``(tau, dt)``: ``t`` relative to the epoch, and the step from the filter time."""
+        _finite("t", t)
+        tau = float(t) - self.epoch
+        dt = tau - self._tau
+        if dt < -self.params.time_tolerance:
+            raise ValueError(f"t={t} s precedes the filter time {self.time} s; the filter "
+                             "only moves forward (use nanoasm.drift.smooth for the past)")
+        return max(tau, self._tau), max(dt, 0.0)
+
+    def _propagate(self, t: float):
+        tau, dt = self._relative(t)
+        p = self.params
+        x, L = predict_sqrt(self._x, self._L, dt, p.q, p.q_offset)
+        return tau, dt, x, L, process_noise_sqrt(dt, p.q, p.q_offset)
+
+    def _commit(self, tau, dt, x, L, x_prior, L_prior, Q_sqrt, kind, creep=None,
+                creep_sqrt=None) -> None:
+        """Make ``(x, L)`` at ``tau`` the current estimate and log the step."""
+        if creep is None:
+            creep, creep_sqrt = self.creep.offset(tau), self.creep.cov_sqrt(tau)
+        self._tau, self._x, self._L = tau, x.copy(), L.copy()
+        self.history.append(HistoryEntry(
+            self.epoch + tau, x.copy(), _gram(L), x_prior.copy(), _gram(L_prior), dt,
+            np.asarray(creep, float).copy(), creep_sqrt @ creep_sqrt.T, kind, L.copy(),
+            L_prior.copy(), Q_sqrt))
+
+    def predict_to(self, t: float) -> None:
+        """Advance the estimate to time ``t`` (s, not before :attr:`time`)."""
+        tau, dt, x, L, Q_sqrt = self._propagate(t)
+        if dt > 0.0:
+            self._commit(tau, dt, x, L, x, L, Q_sqrt, "predict")
+
+    def state_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted thermal state ``(x (4,), P (4, 4))`` at ``t``; the filter is unchanged."""
+        _, _, x, L, _ = self._propagate(t)
+        return x, _gram(L)
+
+    def offset(self, t: float) -> OffsetEstimate:
+        """Predicted offset at ``t`` (creep included) and its covariance; no mutation.
+
+        Returns
+        -------
+        OffsetEstimate
+            ``(offset (2,) nm, cov (2, 2) nm²)``: the believed layout position ``p``
+            lies at ``p + offset`` in the scanner frame. The covariance includes the
+            creep amplitude's uncertainty (``creep.amplitude_std``).
+        """
+        tau, _, x, L, _ = self._propagate(t)
+        return OffsetEstimate(x[:2] + self.creep.offset(tau),
+                              _gram(np.hstack([L[:2], self.creep.cov_sqrt(tau)])))
+
+    def r_max(self, t: float, k: float = 3.0) -> float:
+        """Largest expected drift error radius (nm) at ``t``: ``k √λ_max`` of the offset
+        covariance. The executor sizes local scan lines with it (``l > R + r_max``)."""
+        _finite("k", k, nonnegative=True)
+        cov = self.offset(t).cov
+        return float(k * math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
+
+    def inflate(self, offset_std: float = 0.0, velocity_std: float = 0.0) -> None:
+        """Add independent uncertainty (nm, nm/s) to the current estimate, e.g. after
+        the executor decides the drift jumped (several lone measurements gated out)."""
+        _finite("offset_std", offset_std, nonnegative=True)
+        _finite("velocity_std", velocity_std, nonnegative=True)
+        extra = np.diag([offset_std] * 2 + [velocity_std] * 2)
+        L = tria(np.hstack([self._L, extra]))
+        self._commit(self._tau, 0.0, self._x, L, self._x, L, extra, "inflate")
+        self._streak = []
+        self._anchor = (len(self.history) - 1, self._tau)
+
+    # -- inputs ---------------------------------------------------------------------------
+    def record_move(self, t: float, step) -> bool:
+        """Register a scanner move by ``step`` (nm, (2,)) completed at ``t`` (s).
+
+        Returns whether it is long enough to creep (``creep.min_step``).
+        """
+        tau, _ = self._relative(t)
+        return self.creep.record(tau, step)
+
+    def measure(self, t: float, z, R=None, *, label: str | None = None) -> Measurement:
+        """Fold one measured offset ``z`` (nm, (2,)) at ``t`` into the estimate, unless the
+        χ² gate rejects it (then the estimate is only predicted to ``t``).
+
+        Parameters
+        ----------
+        t : float
+            Time of the measurement (s), not before :attr:`time`.
+        z : (2,) array
+            Measured position in the scanner frame minus believed layout position (nm).
+        R : (2, 2) array, optional
+            Its covariance (nm²); ``measurement_std² I`` by default.
+        label : str, optional
+            The object's or landmark's name: kept in the log, and consecutive rejections
+            count as agreeing objects only when their labels differ.
+        """
+        return self.measure_many(t, [z], None if R is None else [R],
+                                 labels=None if label is None else [label]).results[0]
+
+    def measure_many(self, t: float, zs, Rs=None, *, labels=None) -> JointMeasurement:
+        """Fold several offsets measured at ``t`` (objects and landmarks) jointly.
+
+        Parameters
+        ----------
+        t : float
+            Time (s), not before :attr:`time`.
+        zs : (n, 2) array
+            Measured offsets (nm).
+        Rs : (n, 2, 2) array, optional
+            Their covariances (nm²); ``measurement_std² I`` each by default.
+        labels : sequence of n str, optional
+
+        Returns
+        -------
+        JointMeasurement
+            Rejected objects have ``accepted=False``: treat them as moved. When
+            ``readmitted`` is not empty, the objects of those earlier rejections did not
+            move after all: the drift had jumped.
+        """
+        batch = self._batch(t, zs, Rs, labels)
+        dt = batch.tau - self._tau
+        folded = _fold(self.params, self._x, self._L, dt, batch, None)
+        if not folded.sel.accepted.any():
+            recovered = self._recover(batch)
+            if recovered is not None:
+                return recovered
+            self._streak.append(batch)
+        self._commit_fold(batch, dt, folded)
+        if folded.sel.accepted.any():
+            self._streak = []
+            self._anchor = (len(self.history) - 1, batch.tau)
+        self.measurements.extend(folded.results)
+        return JointMeasurement(batch.t, folded.results, folded.sel.joint_nis, folded.sel.dof,
+                                folded.sel.drift_jump)
+
+    def _batch(self, t, zs, Rs, labels) -> _Batch:
+        zs = np.asarray(zs, float).reshape(-1, 2)
+        n = zs.shape[0]
+        if n == 0 or not np.all(np.isfinite(zs)):
+            raise ValueError("zs must hold at least one finite (2,) offset")
+        if Rs is None:
+            Rs = np.broadcast_to(np.eye(2) * self.params.measurement_std**2, (n, 2, 2))
+        Rs = np.asarray(Rs, float).reshape(n, 2, 2)
+        if not np.all(np.isfinite(Rs)):
+            raise ValueError("Rs must be finite")
+        for i, R in enumerate(Rs):
+            if not (np.allclose(R, R.T) and np.linalg.eigvalsh(R)[0] > 0):
+                raise ValueError(f"Rs[{i}] must be symmetric positive definite")
+        labels = (None,) * n if labels is None else tuple(labels)
+        if len(labels) != n:
+            raise ValueError(f"labels must have {n} entries, got {len(labels)}")
+        tau, _ = self._relative(t)
+        self.creep.prune(tau)
+        creep = self.creep.offset(tau)
+        creep_sqrt = self.creep.cov_sqrt(tau)
+        return _Batch(tau, self.epoch + tau, zs.copy(), zs - creep, Rs.copy(), creep, creep_sqrt,
+                      labels)
+
+    def _commit_fold(self, batch: _Batch, dt: float, folded: _Folded) -> None:
+        self._commit(batch.tau, dt, folded.x, folded.L, folded.x_prior, folded.L_prior,
+                     folded.Q_sqrt, "measure", batch.creep, batch.creep_sqrt)
+
+    def _recover(self, batch: _Batch) -> JointMeasurement | None:
+        """Re-run the streak of rejected batches from the last accepted state with the
+        prior widened by the first one's innovation (an offset jump, or the velocity
+        error that would produce it); adopt it when it accepts every measurement."""
+        p = self.params
+        streak = [*self._streak, batch]
+        labels = [lab for b in streak for lab in b.labels]
+        distinct = len({lab for lab in labels if lab is not None}) + labels.count(None)
+        if p.min_consensus == 0 or distinct < max(2, p.min_consensus):
+            return None
+        index, tau = self._anchor
+        x, L = self.history[index].x, self.history[index].P_sqrt
+        first = streak[0]
+        x_first = predict_sqrt(x, L, first.tau - tau, p.q, p.q_offset)[0]
+        e = weighted_mean(first.thermal, first.Rs)[0] - x_first[:2]
+        widen = np.zeros((STATE_DIM, 2))
+        widen[:2, 0] = e
+        if first.tau > tau:
+            widen[2:, 1] = e / (first.tau - tau)
+        folds = []
+        for j, b in enumerate(streak):
+            f = _fold(p, x, L, b.tau - tau, b, widen if j == 0 else None)
+            if not f.sel.accepted.all():
+                return None
+            folds.append(f)
+            x, L, tau = f.x, f.L, b.tau
+        del self.history[index + 1:]
+        _, self._tau = self._anchor
+        for j, (b, f) in enumerate(zip(streak, folds)):
+            self._commit_fold(b, b.tau - (self._anchor[1] if j == 0 else streak[j - 1].tau), f)
+        self._streak = []
+        self._anchor = (len(self.history) - 1, batch.tau)
+        jumped = [tuple(replace(r, drift_jump=True) for r in f.results) for f in folds]
+        readmitted = tuple(r for rs in jumped[:-1] for r in rs)
+        self.measurements.extend(readmitted + jumped[-1])
+        last = folds[-1].sel
+        return JointMeasurement(batch.t, jumped[-1], last.joint_nis, last.dof, True, readmitted)
+
+
+class _Batch(NamedTuple):
+    """Offsets measured at one time, with the creep input at that time."""
+
+    tau: float
+    t: float
+    zs: np.ndarray
+    thermal: np.ndarray
+    Rs: np.ndarray
+    creep: np.ndarray
+    creep_sqrt: np.ndarray
+    labels: tuple
+
+
+class _Folded(NamedTuple):
+    x: np.ndarray
+    L: np.ndarray
+    x_prior: np.ndarray
+    L_prior: np.ndarray
+    Q_sqrt: np.ndarray
+    sel: Selection
+    results: tuple[Measurement, ...]
+
+
+def _fold(p: DriftFilterParams, x0: np.ndarray, L0: np.ndarray, dt: float, batch: _Batch,
+          widen: np.ndarray | None) -> _Folded:
+    """Predict ``(x0, L0)`` over ``dt``, widen the prior by the columns ``widen``, select
+    the consistent offsets of ``batch`` and fold them in. Pure."""
+    x_prior, L_prior = predict_sqrt(x0, L0, dt, p.q, p.q_offset)
+    Q_sqrt = process_noise_sqrt(dt, p.q, p.q_offset)
+    if widen is not None:
+        L_prior = tria(np.hstack([L_prior, widen]))
+        Q_sqrt = np.hstack([Q_sqrt, widen])
+    prior_sqrt = np.hstack([L_prior[:2], batch.creep_sqrt])  # creep error: common to all
+    sel = select_consistent(x_prior[:2], prior_sqrt, batch.thermal, batch.Rs,
+                            p.gate_probability, p.min_consensus)
+    if sel.drift_jump:  # widen the prior by the consensus innovation
+        column = np.zeros((STATE_DIM, 1))
+        column[:2, 0] = sel.jump
+        L_prior = tria(np.hstack([L_prior, column]))
+        Q_sqrt = np.hstack([Q_sqrt, column])
+        prior_sqrt = np.hstack([L_prior[:2], batch.creep_sqrt])
+    x, L = x_prior, L_prior
+    idx = np.flatnonzero(sel.accepted)
+    if idx.size:
+        creep_cov = batch.creep_sqrt @ batch.creep_sqrt.T
+        R_block = np.kron(np.ones((idx.size, idx.size)), creep_cov)
+        for j, i in enumerate(idx):
+            R_block[2 * j:2 * j + 2, 2 * j:2 * j + 2] += batch.Rs[i]
+        x, L = update_sqrt(x_prior, L_prior, batch.thermal[idx].reshape(-1), R_block,
+                           np.vstack([H_OFFSET] * idx.size))[:2]
+    threshold = gate_threshold(2, p.gate_probability)
+    n = batch.zs.shape[0]
+    results = []
+    for i in range(n):
+        innovation = batch.thermal[i] - x_prior[:2]
+        S_sqrt = tria(np.hstack([prior_sqrt, np.linalg.cholesky(batch.Rs[i])]))
+        ok = bool(sel.accepted[i])
+        reason = "accepted" if ok else ("gated" if n == 1 else "outlier")
+        results.append(Measurement(batch.t, batch.zs[i].copy(), batch.Rs[i].copy(), ok, reason,
+                                   nis_sqrt(innovation, S_sqrt), threshold, innovation,
+                                   _gram(S_sqrt), batch.labels[i], ok and sel.drift_jump))
+    return _Folded(x, L, x_prior, L_prior, Q_sqrt, sel, tuple(results))
+
+
+def _gram(L: np.ndarray) -> np.ndarray:
+    """``L Lᵀ``, exactly symmetric."""
+    return symmetrize(L @ L.T)
