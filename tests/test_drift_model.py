@@ -68,18 +68,15 @@ def test_random_walk_variance_matches_the_closed_form():
     q = 0.3
     params = DriftParams(velocity=(0.0, 0.0), random_walk=q)
     times = np.array([2.0, 5.0, 20.0, 300.0, 2000.0])  # a few grid steps: the exact discretisation
-    xs, vs = [], []
+    xs = []
     for seed in range(1500):
         m = model(seed, params)
         xs.append(np.stack(m.thermal(times)))
-        vs.append(np.stack(m.velocity(times)))
-    xs, vs = np.array(xs), np.array(vs)  # (seed, axis, time)
+    xs = np.array(xs)  # (seed, axis, time)
     var_x = xs.reshape(-1, len(times)).var(axis=0)
-    var_v = vs.reshape(-1, len(times)).var(axis=0)
     # 3000 samples: the variance estimate has a relative sd of 2.6 %
-    np.testing.assert_allclose(var_x / (q**2 * times**3 / 3), 1.0, atol=0.12)
-    np.testing.assert_allclose(var_v / (q**2 * times), 1.0, atol=0.12)
-    assert abs(xs.mean()) < 0.1 * math.sqrt(q**2 * times[-1] ** 3 / 3)
+    np.testing.assert_allclose(var_x / (q**2 * times), 1.0, atol=0.12)
+    assert abs(xs.mean()) < 0.1 * math.sqrt(q**2 * times[-1])
 
 
 def test_long_runs_reach_hundreds_of_nm_at_the_defaults():

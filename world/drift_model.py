@@ -1,10 +1,11 @@
 """The true drift of scanner versus sample: thermal drift and piezo creep.
 
-Thermal drift is a steady velocity plus a random walk on the velocity (an integrated
-Wiener process of intensity ``q``: Var x(t) = q² t³ / 3 per axis). It is sampled exactly
-on a fixed internal grid (step ``grid`` s) with the exact discretisation of the double
-integrator, and interpolated between grid nodes by the cubic Hermite polynomial of the
-node positions and velocities. Grid block ``b`` draws its noise from its own stream
+Thermal drift is a steady velocity plus a random walk: the drift velocity fluctuates
+as white noise about its steady value, so the offset wanders about the steady drift as
+a Wiener process of intensity ``q = random_walk`` (nm/√s, the unit of the scene's
+``[drift] random_walk``): Var x(t) = q² t per axis. It is sampled exactly on a fixed
+internal grid (step ``grid`` s) and interpolated between grid nodes by a smooth (C1
+Hermite) step, so the tip never sees a jump. Grid block ``b`` draws its noise from its own stream
 ``SeedSequence(entropy, spawn_key=(b,))``, so the drift at any time is a deterministic
 function of the model's seed alone: how the queries are chunked or ordered does not
 matter. Times are stored relative to an ``epoch`` (the run's start).
@@ -74,8 +75,8 @@ class DriftModel:
     def _extend(self, nodes: int) -> None:
         """Generate grid nodes (block by block, each from its own stream) up to ``nodes``."""
         h = self.grid
-        chol = self._q * np.array([[h**1.5 / math.sqrt(3), 0.0],
-                                   [math.sqrt(3) / 2 * h**0.5, 0.5 * h**0.5]])
+        # (position, velocity) increment noise: a Wiener process on the position only
+        chol = self._q * np.array([[h**0.5, 0.0], [0.0, 0.0]])
         while self._w.shape[0] <= nodes:
             b = (self._w.shape[0] - 1) // _BLOCK
             gen = np.random.default_rng(np.random.SeedSequence(self._entropy, spawn_key=(b,)))

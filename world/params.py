@@ -164,8 +164,8 @@ class DriftParams:
         (0.06, -0.04), "nm/s", "steady drift velocity: 260 nm per hour",
         source="seed 3.6.1: several hundred nm", required=True)
     random_walk: float = param(
-        5e-4, "nm/s per √s", "intensity q of the random walk on the velocity; "
-        "Var x(t) = q² t³ / 3 per axis: 62 nm rms after 1 h, 320 nm after 3 h", source="seed 3.6.1",
+        0.1, "nm/√s", "random walk of the drift about its steady course (white noise on the "
+        "velocity): Var x(t) = q² t per axis, 6 nm rms after 1 h", source="seed 3.6.1",
         required=True, nonnegative=True)
 
     def __post_init__(self) -> None:
