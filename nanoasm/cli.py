@@ -179,28 +179,28 @@ def scene_random(
     gap: Annotated[float, typer.Option(help="Least clearance between footprints, nm.")] = 50.0,
     drift: Annotated[Optional[tuple[float, float]], typer.Option(metavar="VX VY",
                      help="Steady drift velocity, nm/s (default: the world's own).")] = None,
-    random_walk: Annotated[float, typer.Option(help="Random walk on the drift velocity, nm/sqrt(s).")] = 0.05,
+    random_walk: Annotated[float, typer.Option(help="Random walk of the drift about its course, nm/sqrt(s).")] = 0.1,
     height_noise: Annotated[Optional[float], typer.Option(help="Height noise, nm RMS.")] = None,
 ) -> None:
     """Generate a valid random scene (never an overlap)."""
     from nanoasm.world.random_scene import SceneSpec, random_scene
-    from nanoasm.world.scene import Drift, Noise
+    from nanoasm.world.params import DriftParams, NoiseParams
 
     if output.suffix.lower() not in NATIVE:
         raise InputError(str(output), None, "output must end in .toml or .json")
     if seed < 0:
         raise InputError(None, "--seed", f"must not be negative, got {seed}")
-    spec = SceneSpec(
-        area=area, particles=particles, rods=rods, obstacles=obstacles,
-        particle_diameter=particle_diameter, rod_length=rod_length, rod_diameter=rod_diameter,
-        obstacle_size=obstacle_size, obstacle_height=obstacle_height, gap=gap,
-        drift=None if drift is None else Drift(drift, random_walk),
-        noise=None if height_noise is None else Noise(height_noise),
-    )
     if drift is not None and not (all(map(_finite, drift)) and _finite(random_walk) and random_walk >= 0):
         raise InputError(None, "--drift", "velocity and --random-walk must be finite, random walk >= 0")
     if height_noise is not None and not (_finite(height_noise) and height_noise >= 0):
         raise InputError(None, "--height-noise", f"must be finite and >= 0, got {height_noise}")
+    spec = SceneSpec(
+        area=area, particles=particles, rods=rods, obstacles=obstacles,
+        particle_diameter=particle_diameter, rod_length=rod_length, rod_diameter=rod_diameter,
+        obstacle_size=obstacle_size, obstacle_height=obstacle_height, gap=gap,
+        drift=None if drift is None else DriftParams(drift, random_walk),
+        noise=None if height_noise is None else NoiseParams(height_noise),
+    )
     scene = random_scene(spec, seed)
     scene.save(output)
     print(f"{output}: written: {scene.summary()}")

@@ -11,7 +11,8 @@ from hypothesis import given, strategies as st
 
 from nanoasm.errors import InputError
 from nanoasm.world.random_scene import SceneSpec, random_scene
-from nanoasm.world.scene import Drift, load_scene, scene_from_dict
+from nanoasm.world.params import DriftParams, WorldParams
+from nanoasm.world.scene import load_scene, scene_from_dict
 
 
 def base() -> dict:
@@ -45,7 +46,7 @@ def with_(path: str, value) -> dict:
 def test_valid_scene_and_default_ids():
     s = scene_from_dict(base(), "s.toml")
     assert [o.id for o in s.objects] == ["a", "o2"]
-    assert s.drift == Drift((0.08, -0.05), 0.05)
+    assert s.drift == DriftParams((0.08, -0.05), 0.05)
     assert s.seed == 7
     assert scene_from_dict(tomllib.loads(s.dumps_toml())) == s
 
@@ -55,7 +56,7 @@ def test_optional_tables_stay_absent():
     for k in ("drift", "noise", "seed", "obstacle"):
         del data[k]
     s = scene_from_dict(data)
-    assert s.drift is None and s.noise is None and s.seed is None
+    assert s.params == WorldParams() and s.seed is None
     assert "drift" not in s.to_dict() and "noise" not in s.to_dict()
     assert scene_from_dict(s.to_dict()) == s
 
@@ -80,7 +81,11 @@ CASES = [
     ("object.1.length", 10, "object[2].length", "at least the diameter"),
     ("obstacle.0.height", 0, "obstacle[1].height", "must be positive"),
     ("obstacle.0.polygon", [[0, 0], [1, 1], [1, 0], [0, 1]], "obstacle[1].polygon", "intersects itself"),
-    ("tip", {"radius": 10}, "tip", "unknown key"),
+    ("tip", {"radius": -10}, "tip.radius", "must be positive"),
+    ("tip", {"radius": 10, "colour": 1}, "tip.colour", "unknown key"),
+    ("cantilever", {"Kn": 80}, "cantilever.Kn", "did you mean 'K_n'"),
+    ("faults", {"stuck_object": 2}, "faults.stuck_object", "at most 1"),
+    ("tipp", {"radius": 10}, "tipp", "did you mean 'tip'"),
 ]
 
 

@@ -17,7 +17,8 @@ from nanoasm.bodies import Body
 from nanoasm.errors import InputError
 from nanoasm.schema import Point
 
-from .scene import Drift, Noise, Obstacle, Scene, scene_from_dict
+from .params import DriftParams, NoiseParams, WorldParams
+from .scene import Obstacle, Scene, scene_from_dict
 
 #: Candidates tried per object before giving up.
 ATTEMPTS = 400
@@ -37,8 +38,8 @@ class SceneSpec:
     obstacle_size: Point = (300.0, 1500.0)
     obstacle_height: Point = (20.0, 60.0)
     gap: float = 50.0
-    drift: Drift | None = None
-    noise: Noise | None = None
+    drift: DriftParams | None = None
+    noise: NoiseParams | None = None
 
     def check(self) -> None:
         """Raise InputError (naming the CLI option) for an impossible request."""
@@ -171,5 +172,6 @@ def random_scene(spec: SceneSpec, seed: int) -> Scene:
                 raise InputError(None, option, f"only {placed} of {count} {kind}s fit without overlap "
                                  f"in {area[0]:g} x {area[1]:g} nm; use a larger --area, fewer objects or a "
                                  "smaller --gap")
-    scene = Scene(area, tuple(objects), tuple(obstacles), spec.drift, spec.noise, seed)
+    params = WorldParams(**{k: v for k, v in (("drift", spec.drift), ("noise", spec.noise)) if v is not None})
+    scene = Scene(area, tuple(objects), tuple(obstacles), params, seed)
     return scene_from_dict(scene.to_dict(), "generated scene")

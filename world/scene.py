@@ -1,14 +1,16 @@
 """Scene v1 (``nanoasm.scene/1``): the truth of a simulated world.
 
-Objects (particles and rods), fixed obstacles, drift and noise, loaded from TOML or
-JSON into frozen, validated value types. Every rejection is an
+Objects (particles and rods), fixed obstacles, and the world's physical parameters
+(``[drift]``, ``[noise]`` and the further tables of :mod:`nanoasm.world.params`, each
+defaulting to the seed's values), loaded from TOML or JSON into frozen, validated
+value types. Every rejection is an
 :class:`~nanoasm.errors.InputError` naming the file, the key path and the problem.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import shapely
 
@@ -23,6 +25,8 @@ from nanoasm.bodies import (
 )
 from nanoasm.fileio import dumps_json, dumps_toml, read_document, write_atomic
 from nanoasm.schema import Point, Table, check_format
+
+from .params import TABLES, DriftParams, NoiseParams, WorldParams
 
 FORMAT = "nanoasm.scene/1"
 KINDS = ("particle", "rod")
@@ -44,36 +48,22 @@ class Obstacle:
 
 
 @dataclass(frozen=True)
-class Drift:
-    """Steady drift velocity (nm/s) of scanner versus sample and a random walk on it (nm/√s)."""
-
-    velocity: Point
-    random_walk: float
-
-    def to_dict(self) -> dict:
-        return {"velocity": list(self.velocity), "random_walk": self.random_walk}
-
-
-@dataclass(frozen=True)
-class Noise:
-    """Height noise per sample (nm RMS)."""
-
-    height_rms: float
-
-    def to_dict(self) -> dict:
-        return {"height_rms": self.height_rms}
-
-
-@dataclass(frozen=True)
 class Scene:
     """A simulated sample. ``drift``/``noise`` are None when the file leaves them to the world."""
 
     area: Point
     objects: tuple[Body, ...] = ()
     obstacles: tuple[Obstacle, ...] = ()
-    drift: Drift | None = None
-    noise: Noise | None = None
+    params: WorldParams = field(default_factory=WorldParams)
     seed: int | None = None
+
+    @property
+    def drift(self) -> DriftParams:
+        return self.params.drift
+
+    @property
+    def noise(self) -> NoiseParams:
+        return self.params.noise
 
     def to_dict(self) -> dict:
         d: dict = {"format": FORMAT, "area": list(self.area)}
@@ -82,10 +72,7 @@ class Scene:
         d["object"] = [o.to_dict() for o in self.objects]
         if self.obstacles:
             d["obstacle"] = [o.to_dict() for o in self.obstacles]
-        if self.drift is not None:
-            d["drift"] = self.drift.to_dict()
-        if self.noise is not None:
-            d["noise"] = self.noise.to_dict()
+        d.update(self.params.to_tables())
         return d
 
     def dumps_toml(self) -> str:
@@ -106,28 +93,11 @@ class Scene:
                 f"{len(self.obstacles)} obstacle(s)")
 
 
-def _drift(t: Table) -> Drift | None:
-    dt = t.table("drift", optional=True)
-    if dt is None:
-        return None
-    dt.check_keys(required={"velocity", "random_walk"})
-    return Drift(dt.pair("velocity"), dt.number("random_walk", nonnegative=True))
-
-
-def _noise(t: Table) -> Noise | None:
-    nt = t.table("noise", optional=True)
-    if nt is None:
-        return None
-    nt.check_keys(required={"height_rms"})
-    return Noise(nt.number("height_rms", nonnegative=True))
-
-
 def scene_from_dict(data: dict, source: str | None = None) -> Scene:
     """Validate a parsed scene document."""
     check_format(data, source, FORMAT)
     t = Table(data, source)
-    t.check_keys(required={"format", "area"},
-                 optional={"seed", "object", "obstacle", "drift", "noise"})
+    t.check_keys(required={"format", "area"}, optional={"seed", "object", "obstacle", *TABLES})
     area = t.pair("area", names=("width", "height"), positive=True)
     seed = t.integer("seed", None, nonnegative=True)
 
@@ -143,7 +113,7 @@ def scene_from_dict(data: dict, source: str | None = None) -> Scene:
         obstacles.append(Obstacle(pts, bt.number("height", positive=True)))
         polys.append(poly)
 
-    drift, noise = _drift(t), _noise(t)
+    params = WorldParams.from_document(t)
 
     for ot, o in zip(otables, objects):
         if outside_area(o, area):
@@ -153,7 +123,7 @@ def scene_from_dict(data: dict, source: str | None = None) -> Scene:
     for i, k in polygon_overlaps(objects, polys):
         otables[i].fail(None, f"object {objects[i].id!r} overlaps {btables[k].path}")
 
-    return Scene(area, tuple(objects), tuple(obstacles), drift, noise, seed)
+    return Scene(area, tuple(objects), tuple(obstacles), params, seed)
 
 
 def load_scene(path: str | os.PathLike) -> Scene:
