@@ -210,6 +210,38 @@ def _finite(x: float) -> bool:
     return x == x and abs(x) != float("inf")
 
 
+# -- identification -----------------------------------------------------------------
+
+@app.command("identify")
+def identify_cmd(
+    scan: Annotated[Path, typer.Argument(help="Height image: .gwy .stp .jpk .spm .ibw .txt/.asc/.csv "
+                                              ".xyz .npy .npz")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output environment .json.")],
+    cut: Annotated[Optional[float], typer.Option(help="Cut plane, nm above the levelled substrate "
+                                                      "(default: from the height histogram).")] = None,
+    min_area: Annotated[Optional[float], typer.Option(help="Smallest object area, nm^2.")] = None,
+    pixel_size: Annotated[Optional[float], typer.Option(help="Pixel size, nm (.npy, bare ASCII).")] = None,
+    tip_radius: Annotated[float, typer.Option(help="AFM tip radius, nm (first guess).")] = 10.0,
+) -> None:
+    """Identify particles, rods, wires and obstacles in an AFM image (environment v1)."""
+    from nanoasm.world.identify import identify
+    from nanoasm.world.readers import read_height_image
+
+    if output.suffix.lower() != ".json":
+        raise InputError(str(output), None, "output must end in .json")
+    for option, value in (("--cut", cut), ("--min-area", min_area), ("--pixel-size", pixel_size),
+                          ("--tip-radius", tip_radius)):
+        if value is not None and not (_finite(value) and value > 0):
+            raise InputError(None, option, f"must be positive, got {value:g}")
+    image = read_height_image(scan, pixel_size=pixel_size)
+    env = identify(image, cut=cut, min_area=min_area, tip_radius=tip_radius)
+    env.save(output)
+    kinds = {k: sum(o.kind == k for o in env.objects) for k in ("particle", "rod", "wire")}
+    edge = sum(o.edge for o in env.objects)
+    print(f"{output}: written: {kinds['particle']} particle(s), {kinds['rod']} rod(s), "
+          f"{kinds['wire']} wire(s), {len(env.obstacles)} obstacle(s); {edge} cut by the border")
+
+
 # -- entry point --------------------------------------------------------------------
 
 def main(argv: list[str] | None = None) -> int:

@@ -108,3 +108,30 @@ def test_console_script(tmp_path):
     bad = subprocess.run([exe, "scene", "check", str(tmp_path / "e.toml")], capture_output=True, text=True)
     assert bad.returncode == 1
     assert bad.stderr.strip() == f"nanoasm: error: {tmp_path / 'e.toml'}: file is empty"
+
+
+def test_identify_a_simulated_scan(tmp_path, capsys):
+    import numpy as np
+
+    from nanoasm.bodies import Body
+    from nanoasm.world.environment import load_environment
+    from nanoasm.world.readers import save_height_image
+    from nanoasm.world.render import make_surface, render_scan
+
+    rng = np.random.default_rng(3)
+    bodies = [Body("a", "particle", (1000.0, 1200.0), 80.0),
+              Body("b", "rod", (3000.0, 2500.0), 60.0, 30.0, 600.0)]
+    surface = make_surface(bodies, [], (5000.0, 5000.0), rng=rng)
+    save_height_image(render_scan(surface, 10.0, rng=rng), tmp_path / "scan.npz")
+    code, out, err = run(capsys, "identify", str(tmp_path / "scan.npz"), "-o", str(tmp_path / "env.json"))
+    assert code == 0, err
+    assert "1 particle(s), 1 rod(s)" in out
+    env = load_environment(tmp_path / "env.json")
+    p = next(o for o in env.objects if o.kind == "particle")
+    assert abs(p.at[0] - 1000) < 2 and abs(p.at[1] - 1200) < 2 and abs(p.diameter - 80) < 4
+    code, _, err = run(capsys, "identify", str(tmp_path / "nope.npz"), "-o", str(tmp_path / "e.json"))
+    assert code == 1 and "no such file" in one_error_line(err)
+    code, _, err = run(capsys, "identify", str(tmp_path / "scan.npz"), "-o", str(tmp_path / "e.json"),
+                       "--cut", "-1")
+    assert code == 1 and "--cut: must be positive" in one_error_line(err)
+    assert not (tmp_path / "e.json").exists()

@@ -1,0 +1,237 @@
+"""Levelling a raw height image so that the bare substrate sits at z = 0.
+
+A polynomial surface (a plane by default) is fitted to the substrate and subtracted,
+then every scan line (row) is aligned by its median (or a low-order polynomial) over
+the substrate. Objects would bias both fits, so they are masked out and the fits
+repeated: each round marks what stands clearly above (or sinks clearly below) the
+substrate, grows that mask by a few pixels to cover the tip-broadened skirts, and fits
+again on what is left. When flat plateaus (electrodes) cover much of the image, the
+first round starts from the lowest extended level instead (:func:`initial_substrate`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+#: Robust sigma from the median absolute deviation of a normal distribution.
+MAD_TO_SIGMA = 1.4826
+#: Lowest automatic cut (nm): a cut closer to the substrate finds noise, not objects.
+CUT_FLOOR = 0.5
+#: A height level holding at least this fraction of the image may be the substrate.
+DENSE_LEVEL = 0.15
+#: ... and the lowest such level is the substrate only if this fraction of rows shows it.
+ROWS_WITH_SUBSTRATE = 0.8
+
+
+@dataclass(frozen=True, eq=False)
+class Levelled:
+    """A levelled image: ``height`` (nm, substrate at 0), the ``substrate`` mask used
+    by the last fit, the substrate's robust noise ``sigma`` (nm) and ``valid`` (finite
+    input pixels; invalid ones are set to 0)."""
+
+    height: np.ndarray
+    substrate: np.ndarray
+    sigma: float
+    valid: np.ndarray
+
+
+def _powers(order: int) -> list[tuple[int, int]]:
+    return [(i, j) for i in range(order + 1) for j in range(order + 1 - i)]
+
+
+def fit_surface(z: np.ndarray, use: np.ndarray, order: int, max_points: int = 40000) -> np.ndarray:
+    """Least-squares 2-D polynomial of total degree ``order`` through ``z[use]``, evaluated everywhere."""
+    ny, nx = z.shape
+    iy, ix = np.nonzero(use)
+    if iy.size < (order + 1) * (order + 2):
+        return np.zeros_like(z)
+    if iy.size > max_points:
+        pick = np.linspace(0, iy.size - 1, max_points).astype(int)
+        iy, ix = iy[pick], ix[pick]
+    xs, ys = np.linspace(-1.0, 1.0, nx), np.linspace(-1.0, 1.0, ny)
+    powers = _powers(order)
+    a = np.stack([xs[ix] ** i * ys[iy] ** j for i, j in powers], axis=-1)
+    coef, *_ = np.linalg.lstsq(a, z[iy, ix], rcond=None)
+    out = np.zeros_like(z)
+    for (i, j), k in zip(powers, coef):
+        out += k * np.outer(ys ** j, xs ** i)
+    return out
+
+
+def align_rows(z: np.ndarray, use: np.ndarray, order: int = 0, min_count: int = 5) -> np.ndarray:
+    """Per-row correction: the median (``order`` 0) or a polynomial fit over ``use`` pixels.
+
+    Rows with fewer than ``min_count`` usable pixels take the offset interpolated from
+    their neighbours (their polynomial terms beyond the offset are dropped).
+    """
+    ny, nx = z.shape
+    corr = np.zeros_like(z)
+    offs = np.full(ny, np.nan)
+    xs = np.linspace(-1.0, 1.0, nx)
+    counts = np.count_nonzero(use, axis=1)
+    if order == 0:
+        enough = counts >= min_count
+        if enough.any():
+            offs[enough] = np.nanmedian(np.where(use[enough], z[enough], np.nan), axis=1)
+    for i in range(ny) if order else ():
+        u = use[i]
+        if counts[i] < max(min_count, order + 2):
+            continue
+        c = np.polynomial.polynomial.polyfit(xs[u], z[i, u], order)
+        corr[i] = np.polynomial.polynomial.polyval(xs, c)
+        offs[i] = np.median(corr[i])
+        corr[i] -= offs[i]
+    good = np.isfinite(offs)
+    if not good.any():
+        return corr
+    filled = np.interp(np.arange(ny), np.nonzero(good)[0], offs[good])
+    if order == 0:
+        return np.broadcast_to(filled[:, None], z.shape).copy()
+    return corr + filled[:, None]
+
+
+def robust_sigma(values: np.ndarray) -> float:
+    """Normal-equivalent sigma from the median absolute deviation."""
+    if values.size == 0:
+        return 0.0
+    return float(MAD_TO_SIGMA * np.median(np.abs(values - np.median(values))))
+
+
+def _tilt(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """The sample's tilt as a plane through 0: the median slope between neighbours.
+
+    Flat substrate and flat plateaus share the tilt, objects' flanks cancel and steps
+    are rare, so the medians hold however much of the image the plateaus cover.
+    """
+    ny, nx = z.shape
+    dx = np.diff(z, axis=1)[valid[:, 1:] & valid[:, :-1]]
+    dy = np.diff(z, axis=0)[valid[1:] & valid[:-1]]
+    sx = float(np.median(dx)) if dx.size else 0.0
+    sy = float(np.median(dy)) if dy.size else 0.0
+    return sx * np.arange(nx)[None, :] + sy * np.arange(ny)[:, None]
+
+
+def initial_substrate(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Pixels to start levelling from: all valid ones, unless plateaus hold a large part.
+
+    The heights, less the tilt (:func:`_tilt`), are binned at the noise
+    level (from differences of neighbours along the rows). Levels holding at least
+    ``DENSE_LEVEL`` of the pixels are candidate substrates; objects rest on the
+    substrate, so when there are several the lowest is it, and the start excludes
+    everything closer to the next level up, provided most rows show that level (else
+    the levels are bands of offset lines). Row medians alone would otherwise take a
+    plateau covering most of a row for the substrate.
+    """
+    diffs = np.diff(z, axis=1)[valid[:, 1:] & valid[:, :-1]]
+    noise = robust_sigma(diffs) / np.sqrt(2) if diffs.size else 0.0
+    flat = z - _tilt(z, valid)
+    vals = flat[valid]
+    if noise <= 0 or vals.size < 100:
+        return valid
+    lo, hi = np.percentile(vals, [0.1, 99.9])
+    step = max(noise, (hi - lo) / 4000)
+    if hi - lo < 10 * noise:
+        return valid
+    hist, edges = np.histogram(vals, bins=np.arange(lo, hi + step, step))
+    smooth = ndimage.uniform_filter1d(hist.astype(float), 3)
+    centres = 0.5 * (edges[:-1] + edges[1:])
+    cum = np.concatenate([[0], np.cumsum(hist)])
+    half = max(1, int(round(3 * noise / step)))
+    levels: list[tuple[float, int]] = []
+    for i in range(1, len(smooth) - 1):
+        if smooth[i] >= smooth[i - 1] and smooth[i] > smooth[i + 1]:
+            mass = int(cum[min(i + half + 1, len(hist))] - cum[max(i - half, 0)])
+            if mass >= DENSE_LEVEL * vals.size:
+                levels.append((float(centres[i]), mass))
+    separate = max(10 * noise, 2.0)
+    merged: list[tuple[float, int]] = []
+    for h, m in levels:
+        if merged and h - merged[-1][0] < separate:
+            if m > merged[-1][1]:
+                merged[-1] = (h, m)
+            continue
+        merged.append((h, m))
+    if len(merged) < 2:
+        return valid
+    (h0, _), (h1, _) = merged[0], merged[1]
+    start = valid & (np.abs(flat - h0) <= (h1 - h0) / 2)
+    # Levels that each fill whole rows are line offsets (bands), not plateaus on a
+    # substrate: the row alignment handles those, starting from every pixel.
+    if np.mean(np.count_nonzero(start, axis=1) >= 5) < ROWS_WITH_SUBSTRATE:
+        return valid
+    return start
+
+
+def level(height: np.ndarray, *, plane_order: int = 1, line_order: int = 0,
+          iterations: int = 6, k_mask: float = 3.0, grow: int = 2,
+          floor: float = CUT_FLOOR) -> Levelled:
+    """Level ``height`` (nm) so that the substrate is at 0.
+
+    Parameters
+    ----------
+    height : (ny, nx) float array
+        Raw heights; non-finite pixels are ignored and come back as 0.
+    plane_order : int
+        Degree of the 2-D polynomial removed first (0: none beyond an offset).
+    line_order : int
+        0 aligns each row by its median, 1 or 2 by a polynomial along the row.
+    iterations : int
+        Most rounds of fit, mask, fit again (fewer once the mask stops changing).
+    k_mask : float
+        Pixels further than ``max(k_mask * sigma, floor / 2)`` from the substrate are masked.
+    grow : int
+        Pixels by which the object mask is grown.
+    """
+    z = np.asarray(height, dtype=float)
+    if z.ndim != 2:
+        raise ValueError(f"height must be 2-D, got shape {z.shape}")
+    if plane_order < 0 or line_order not in (0, 1, 2) or iterations < 1 or grow < 0:
+        raise ValueError("plane_order >= 0, line_order in (0, 1, 2), iterations >= 1, grow >= 0 required")
+    valid = np.isfinite(z)
+    if not valid.any():
+        raise ValueError("height has no finite value")
+    z = np.where(valid, z, np.median(z[valid]))
+    use = initial_substrate(z, valid)
+    sigma = 0.0
+    structure = ndimage.generate_binary_structure(2, 2)
+    for _ in range(iterations):
+        z = z - fit_surface(z, use, plane_order)
+        z = z - align_rows(z, use, line_order)
+        base = z[use]
+        sigma = robust_sigma(base)
+        centre = float(np.median(base))
+        z = z - centre
+        limit = max(k_mask * sigma, floor / 2)
+        objects = np.abs(z) > limit
+        if grow:
+            objects = ndimage.binary_dilation(objects, structure, iterations=grow)
+        new_use = valid & ~objects
+        if np.count_nonzero(new_use) < max(10, 0.05 * z.size):
+            break                             # too little substrate left: keep the last mask
+        if np.count_nonzero(new_use != use) <= 1e-3 * z.size:
+            use = new_use
+            break                             # converged
+        use = new_use
+    z = np.where(valid, z, 0.0)
+    return Levelled(z, use, sigma, valid)
+
+
+def default_cut(lev: Levelled, k: float = 5.0, floor: float = CUT_FLOOR) -> float:
+    """Cut height: the substrate's mode plus ``k`` robust sigmas, never below ``floor`` nm.
+
+    The mode is the peak of the height histogram of the substrate pixels (bins of a
+    fifth of sigma, lightly smoothed).
+    """
+    base = lev.height[lev.substrate]
+    sigma = lev.sigma
+    mode = 0.0
+    if base.size > 100 and sigma > 0:
+        bins = np.arange(-5 * sigma, 5 * sigma + sigma / 5, sigma / 5)
+        hist, edges = np.histogram(base, bins=bins)
+        hist = ndimage.uniform_filter1d(hist.astype(float), 3)
+        i = int(np.argmax(hist))
+        mode = 0.5 * (edges[i] + edges[i + 1])
+    return max(floor, mode + k * sigma)
