@@ -177,7 +177,11 @@ def plan_dac(moves: Iterable, config: InstrumentConfig, current, *, t0: float = 
     start = config.codes_to_nm(current)
     path = build_path(moves, start[:2] - drift_at(drift_fn, np.array([t0]))[0], start[2],
                       config.lift, config.preload)
-    _check_range_coarse(path, moves, offset, drift_at(drift_fn, np.array([t0]))[0], config)
+    drift0 = drift_at(drift_fn, np.array([t0]))[0]
+    _check_range_coarse(path, moves, offset, drift0, config)
+    if isinstance(drift_fn, LinearDrift) and not np.any(drift_fn.velocity):
+        # constant drift: the exact check needs no timing, so it comes first
+        _check_range_coarse(path, moves, offset, drift0, config, slack=0.0)
     prof = _timed(path, offset, drift_fn, t0, config)
     _check_range(path, moves, prof, offset, drift_fn, t0, config)
     return DacPlan(config, moves, path, prof, drift_fn, offset, current, t0)
@@ -216,17 +220,21 @@ def _first_outside(points: np.ndarray, lo: np.ndarray, hi: np.ndarray):
     return tuple(int(v) for v in np.argwhere(out)[0])
 
 
-def _check_range_coarse(path: Path, moves, offset, drift0, config: InstrumentConfig) -> None:
-    """Refuse points farther outside the range than the range's own size (no plausible
-    drift brings them in) before timing, which such points could overflow."""
-    span = config.upper - config.lower
+def _check_range_coarse(path: Path, moves, offset, drift0, config: InstrumentConfig,
+                        slack: float = 1.0) -> None:
+    """Refuse points farther outside the range than ``slack`` times the range's own size
+    (no plausible drift brings them in) before timing, which such points could overflow.
+    With ``slack`` 0 it is the exact check for a constant drift."""
+    span = (config.upper - config.lower) * slack
     cmd = _commands(path, offset)
     cmd[:, :2] += drift0
     hit = _first_outside(cmd, config.lower - span, config.upper + span)
     if hit is not None:
         i, a = hit
+        far = "far " if slack else ""
         raise InstrumentLimitError(
-            f"{path.describe(i, moves)} commands {AXES[a]} = {cmd[i, a]:.6g} nm, far outside the "
+            f"{path.describe(i, moves)} commands {AXES[a]} = {cmd[i, a]:.6g} nm (drift "
+            f"({drift0[0]:+.1f}, {drift0[1]:+.1f}) nm), {far}outside the "
             f"scanner range [{config.lower[a]:g}, {config.upper[a]:g}] nm; nothing sent")
 
 
