@@ -242,6 +242,82 @@ def identify_cmd(
           f"{kinds['wire']} wire(s), {len(env.obstacles)} obstacle(s); {edge} cut by the border")
 
 
+# -- planning -------------------------------------------------------------------------
+
+@app.command("plan")
+def plan_cmd(
+    layout_file: Annotated[Path, typer.Argument(metavar="LAYOUT", help="Layout (TOML/JSON).")],
+    output: Annotated[Path, typer.Option("-o", "--output", help="Output plan .json.")],
+    env_file: Annotated[Optional[Path], typer.Option("--env", help="Environment from identify.")] = None,
+    scan: Annotated[Optional[Path], typer.Option("--scan", help="AFM image to identify first.")] = None,
+    pixel_size: Annotated[Optional[float], typer.Option(help="Pixel size of --scan, nm.")] = None,
+    planner: Annotated[str, typer.Option(help="OMPL planner for detours: rrtconnect, rrt, rrtstar, "
+                                              "informedrrtstar, bitstar, prm, prmstar, fmt, kpiece, "
+                                              "bkpiece, lbkpiece.")] = "rrtconnect",
+    time_budget: Annotated[float, typer.Option(help="Seconds OMPL may spend on one path.")] = 1.0,
+    tip_radius: Annotated[float, typer.Option(help="Tip radius, nm.")] = 10.0,
+    margin: Annotated[float, typer.Option(help="Clearance beyond footprints and tip, nm.")] = 20.0,
+    seed: Annotated[int, typer.Option(help="Seed of the planners' sampling.")] = 0,
+) -> None:
+    """Assign objects to slots and plan the pushes (plan v1)."""
+    from nanoasm.cad.layout import load_layout
+    from nanoasm.planner.core import plan_assembly
+    from nanoasm.planner.options import PLANNERS, PlanOptions
+    from nanoasm.world.environment import load_environment
+
+    if output.suffix.lower() != ".json":
+        raise InputError(str(output), None, "output must end in .json")
+    if (env_file is None) == (scan is None):
+        raise InputError(None, "--env/--scan", "give exactly one of --env ENV.json or --scan SCAN")
+    if planner not in PLANNERS:
+        raise InputError(None, "--planner", f"unknown planner {planner!r}; one of {', '.join(PLANNERS)}")
+    for option, value in (("--time-budget", time_budget), ("--tip-radius", tip_radius)):
+        if not (_finite(value) and value > 0):
+            raise InputError(None, option, f"must be positive, got {value:g}")
+    if not (_finite(margin) and margin >= 0):
+        raise InputError(None, "--margin", f"must not be negative, got {margin:g}")
+    if seed < 0:
+        raise InputError(None, "--seed", f"must not be negative, got {seed}")
+    layout = load_layout(layout_file)
+    if env_file is not None:
+        env = load_environment(env_file)
+    else:
+        from nanoasm.world.identify import identify
+        from nanoasm.world.readers import read_height_image
+
+        env = identify(read_height_image(scan, pixel_size=pixel_size), tip_radius=tip_radius)
+    options = PlanOptions(tip_radius=tip_radius, margin=margin, planner=planner,
+                          time_budget=time_budget, seed=seed)
+    plan, stats = _with_progress("planning", lambda progress: plan_assembly(layout, env, options, progress))
+    plan.save(output)
+    print(f"{output}: written: {len(plan.assignment)} of {len(layout.targets)} slot(s) assigned, "
+          f"{len(plan.operations)} push(es), {stats.parked} object(s) parked, "
+          f"{len(plan.unfilled)} unfilled; {stats.wall_time:.2f} s")
+    if stats.particle_turns:
+        print(f"  particle paths: {stats.path_ratio:.3f} x straight length, "
+              f"{sum(stats.particle_turns) / len(stats.particle_turns):.2f} turns per object")
+    if stats.rod_pushes:
+        print(f"  rods: {sum(stats.rod_pushes) / len(stats.rod_pushes):.1f} pushes per rod")
+    for u in plan.unfilled:
+        print(f"  unfilled {u.target}: {u.reason}")
+
+
+def _with_progress(label: str, work):
+    """Run ``work(progress)`` with a rich progress bar on a terminal (silent otherwise)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    if not sys.stderr.isatty():
+        return work(None)
+    with Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  transient=True) as bar:
+        task = bar.add_task(label, total=None)
+
+        def progress(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total)
+
+        return work(progress)
+
+
 # -- entry point --------------------------------------------------------------------
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,243 @@
+"""From a layout and an environment to an ordered list of pushes.
+
+assign (``assign.match``) -> order (``sequence.order``) -> for each move in order, a
+path planned against every other object *where it is at that point of the sequence*:
+particles by straight segments (``paths``), rods by zigzag pushes (``rods``). Objects in
+the way of a move that finds no path are parked first, then the move is tried again.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import shapely
+
+from nanoasm.bodies import Body
+from nanoasm.cad.layout import Layout
+from nanoasm.world.environment import Environment, EnvObject
+
+from .assign import assignable, effort, match
+from .freespace import FreeSpace
+from .options import PlanOptions
+from .paths import Mover, centre_path, path_length, turns
+from .plan import Assignment, Expect, Operation, Plan, Unfilled
+from .rods import RodController
+from .sequence import order
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass
+class PlanStats:
+    """What planning cost and produced, for the CLI summary and the benchmarks."""
+
+    wall_time: float = 0.0
+    moves: int = 0
+    parked: int = 0
+    particle_path_length: float = 0.0
+    particle_straight_length: float = 0.0
+    particle_turns: list[int] = field(default_factory=list)
+    rod_pushes: list[int] = field(default_factory=list)
+    ompl_calls: int = 0
+
+    @property
+    def path_ratio(self) -> float:
+        """Particle path length over straight-line length (1 = straight)."""
+        return self.particle_path_length / self.particle_straight_length if self.particle_straight_length else 1.0
+
+
+class _Session:
+    """One planning pass: free space, the growing list of operations, and statistics."""
+
+    def __init__(self, layout: Layout, env: Environment, options: PlanOptions):
+        self.layout, self.env, self.options = layout, env, options
+        self.targets = {t.id: t for t in layout.targets}
+        self.objects: dict[str, EnvObject] = {o.id: o for o in env.objects}
+        regions = [k.geometry() for k in layout.keepouts] + [shapely.Polygon(ob.polygon) for ob in env.obstacles]
+        # a rod lying on a keep-out or an obstacle stays where it is (a particle is pushed off)
+        on_region = set()
+        if regions:
+            union = shapely.union_all(regions)
+            on_region = {o.id for o in env.objects
+                         if o.kind == "rod" and shapely.distance(o.geometry(), union) < o.radius}
+        movable = {o.id: o for o in env.objects if assignable(o, options) and o.id not in on_region}
+        self.fixed_ids = set(self.objects) - set(movable)
+        fixed: list[tuple[shapely.Geometry, float]] = [(g, 0.0) for g in regions]
+        fixed += [(self.objects[i].geometry(), self.objects[i].radius) for i in sorted(self.fixed_ids)]
+        area = (min(layout.area[0], env.area[0]), min(layout.area[1], env.area[1]))
+        self.space = FreeSpace(area, fixed, movable, options.clearance)
+        self.placed: set[str] = set()          # objects in their final slot: never parked
+        self.operations: list[Operation] = []
+        self.pushed: list[str] = []
+        self.stats = PlanStats()
+        self.rods = RodController(self.space, options, layout.tolerance.position / 2,
+                                  layout.tolerance.angle / 2)
+
+    # -- operations -----------------------------------------------------------------
+    def _emit(self, obj: Body, target: str | None, tip_path, expect: Body) -> None:
+        angle = None if expect.kind != "rod" else expect.angle % 180.0
+        self.operations.append(Operation(len(self.operations) + 1, obj.id, target,
+                                         tuple((float(x), float(y)) for x, y in tip_path),
+                                         Expect((float(expect.at[0]), float(expect.at[1])), angle)))
+        if obj.id not in self.pushed:
+            self.pushed.append(obj.id)
+
+    def _tip_ok(self, body: Body) -> Callable:
+        """Whether the tip can be put down behind a push from a to b: contact-free, except
+        with fixed things the object itself lies on (it is being pushed off them)."""
+        rt = self.options.tip_radius
+        saved = self.space.clearance
+        self.space.clearance = 0.0
+        exempt = frozenset(self.space.fixed_hits(body.geometry(), body.radius).tolist())
+        self.space.clearance = saved
+
+        def ok(a, b) -> bool:
+            d = math.dist(a, b)
+            if d == 0:
+                return True
+            off = body.radius + rt
+            tip = (a[0] - (b[0] - a[0]) / d * off, a[1] - (b[1] - a[1]) / d * off)
+            saved = self.space.clearance
+            self.space.clearance = 0.0
+            try:
+                return self.space.is_free(shapely.Point(tip), rt, (body.id,), exempt)
+            finally:
+                self.space.clearance = saved
+        return ok
+
+    def move_particle(self, obj: EnvObject, goal: tuple[float, float], target: str | None) -> bool:
+        mover = Mover(self.space, obj.id, obj.radius)
+        path = centre_path(mover, obj.at, goal, self.options, self._tip_ok(obj))
+        if path is None:
+            return False
+        off = obj.radius + self.options.tip_radius
+        for a, b in zip(path, path[1:]):
+            d = math.dist(a, b)
+            if d < 1e-6:
+                continue
+            ux, uy = (b[0] - a[0]) / d, (b[1] - a[1]) / d
+            tip = ((a[0] - ux * off, a[1] - uy * off), (b[0] - ux * off, b[1] - uy * off))
+            self._emit(obj, target, tip, Body(obj.id, "particle", b, obj.diameter))
+        if target is not None:
+            self.stats.particle_path_length += path_length(path)
+            self.stats.particle_straight_length += math.dist(obj.at, goal)
+            self.stats.particle_turns.append(turns(path))
+        self._place(obj, Body(obj.id, "particle", goal, obj.diameter))
+        return True
+
+    def move_rod(self, obj: EnvObject, goal: Body, target: str | None) -> bool:
+        # a zigzag walks about 0.24 * swing * L per push: allow three times the straight way
+        per_push = 0.24 * math.radians(self.options.rod_swing) * obj.length
+        limit = 40 + math.ceil(3 * math.dist(obj.at, goal.at) / per_push)
+        pushes, final, ok = self.rods.pushes(obj, goal, limit)
+        if not ok:
+            return False
+        for p in pushes:
+            self._emit(obj, target, p.tip_path, p.pose)
+        self.stats.rod_pushes.append(len(pushes))
+        self._place(obj, final)
+        return True
+
+    def _place(self, obj: EnvObject, pose: Body) -> None:
+        new = EnvObject(obj.id, obj.kind, pose.at, obj.diameter, pose.angle, pose.length,
+                        obj.confidence, obj.edge)
+        self.objects[obj.id] = new
+        self.space.move(new)
+
+    # -- moves ----------------------------------------------------------------------
+    def fill(self, target_id: str, object_id: str) -> bool:
+        t, o = self.targets[target_id], self.objects[object_id]
+        for attempt in range(2):
+            done = (self.move_rod(o, t, target_id) if o.kind == "rod"
+                    else self.move_particle(o, t.at, target_id))
+            if done:
+                self.placed.add(object_id)
+                return True
+            if attempt == 0 and not self._clear_way(o, t):
+                return False
+            o = self.objects[object_id]
+        return False
+
+    def _clear_way(self, o: Body, t: Body) -> bool:
+        """Park the movable objects in the straight corridor of a move; False if none."""
+        corridor = shapely.LineString([o.at, t.at]) if o.at != t.at else shapely.Point(o.at)
+        reach = o.length / 2 if o.kind == "rod" else max(o.radius, t.radius)
+        blockers = [b for b in self.space.blockers(corridor, reach, (o.id,)) if b not in self.placed]
+        blockers += [b for b in self.space.blockers(t.geometry(), t.radius, (o.id,))
+                     if b not in self.placed and b not in blockers]
+        if o.kind == "rod":    # a rod swings its ends: free the room around where it starts
+            blockers += [b for b in self.space.blockers(o.geometry(), o.length / 2, (o.id,))
+                         if b not in self.placed and b not in blockers]
+        parked = [b for b in blockers if self.park(b)]
+        return bool(parked)
+
+    def park(self, object_id: str) -> bool:
+        """Move an object out of the way, to the nearest place no slot and no corridor needs."""
+        o = self.objects[object_id]
+        keep_clear = [tg.geometry().buffer(tg.radius + o.radius + self.options.clearance)
+                      for tg in self.targets.values()]
+        avoid = shapely.union_all(keep_clear) if keep_clear else None
+        step = 2 * o.radius + self.options.clearance
+        angles = [2 * math.pi * k / 16 for k in range(16)]
+        for ring in range(1, 12):
+            for a in angles:
+                goal = (o.at[0] + ring * step * math.cos(a), o.at[1] + ring * step * math.sin(a))
+                pose = (Body(o.id, "particle", goal, o.diameter) if o.kind != "rod" else
+                        Body(o.id, "rod", goal, o.diameter, o.angle, o.length))
+                if avoid is not None and avoid.intersects(pose.geometry().buffer(o.radius)):
+                    continue
+                if not self.space.is_free(pose.geometry(), o.radius, (o.id,)):
+                    continue
+                moved = (self.move_rod(o, pose, None) if o.kind == "rod"
+                         else self.move_particle(o, goal, None))
+                if moved:
+                    self.stats.parked += 1
+                    return True
+        return False
+
+
+def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None = None,
+                  progress: Progress | None = None) -> tuple[Plan, PlanStats]:
+    """Plan the assembly of ``layout`` from the objects of ``env``.
+
+    Deterministic for a given input and ``options.seed``.
+    """
+    options = options or PlanOptions()
+    t0 = time.perf_counter()
+    s = _Session(layout, env, options)
+    matching = match(layout, [o for o in env.objects if o.id not in s.fixed_ids], options)
+    efforts = {t: effort(s.targets[t], s.objects[o]) for t, o in matching.moves}
+    nodes, blocked = order(matching.moves, s.targets, s.objects, s.fixed_ids, options.clearance, efforts)
+    object_of = dict(matching.moves)
+    for _, o in matching.staying:
+        s.placed.add(o)
+
+    done: list[tuple[str, str]] = []
+    unfilled = list(matching.unfilled)
+    unfilled += [Unfilled(t, f"slot is held by {s.objects[h].kind} {h!r}, which cannot be pushed")
+                 for t, h in sorted(blocked.items())]
+    for i, (kind, key) in enumerate(nodes):
+        if progress:
+            progress(i, len(nodes))
+        if kind == "park":
+            if key not in s.placed:
+                s.park(key)
+            continue
+        if s.fill(key, object_of[key]):
+            done.append((key, object_of[key]))
+        else:
+            unfilled.append(Unfilled(key, f"no path for {object_of[key]!r}"))
+    if progress:
+        progress(len(nodes), len(nodes))
+
+    order_of = {t.id: i for i, t in enumerate(layout.targets)}
+    assignment = sorted([*matching.staying, *done], key=lambda p: order_of[p[0]])
+    unfilled.sort(key=lambda u: order_of[u.target])
+    plan = Plan(layout.name, tuple(Assignment(t, o) for t, o in assignment), tuple(s.operations),
+                tuple(unfilled))
+    s.stats.moves = len(done)
+    s.stats.wall_time = time.perf_counter() - t0
+    return plan, s.stats

@@ -1,0 +1,125 @@
+"""Free space for pushing: what a moving footprint must keep clear of.
+
+Everything in the way is a *core* geometry (a polygon, a point or a segment) with a
+radius: keep-outs and obstacles are polygons of radius 0, objects are the cores of their
+footprints. A footprint of core ``g`` and radius ``r`` is free when for every entry
+``distance(g, core) >= r + radius + clearance``. Fixed things sit in one STRtree built
+once; movable objects in a second one rebuilt lazily after moves.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+
+import numpy as np
+import shapely
+
+from nanoasm.bodies import Body
+
+
+class FreeSpace:
+    """Clearance queries against fixed geometry and movable bodies in an area.
+
+    Parameters
+    ----------
+    area : (w, h)
+        Footprints must stay inside ``[0, w] x [0, h]``.
+    fixed : sequence of (geometry, radius)
+        Keep-outs, obstacles, and objects that are never moved (wires, edge objects).
+    bodies : mapping id -> Body
+        Movable objects at their current positions.
+    clearance : float
+        Gap, nm, kept beyond the footprints (tip radius + margin).
+    """
+
+    def __init__(self, area: tuple[float, float], fixed: Sequence[tuple[shapely.Geometry, float]],
+                 bodies: Mapping[str, Body], clearance: float):
+        self.area = area
+        self.clearance = float(clearance)
+        self._fixed = np.array([g for g, _ in fixed], dtype=object)
+        self._fixed_r = np.array([r for _, r in fixed], dtype=float)
+        self._fixed_tree = shapely.STRtree(self._fixed) if len(fixed) else None
+        self._fixed_rmax = float(self._fixed_r.max()) if len(fixed) else 0.0
+        self.bodies: dict[str, Body] = dict(bodies)
+        self._dirty = True
+
+    # -- movable bodies ---------------------------------------------------------------
+    def move(self, body: Body) -> None:
+        """Put ``body`` (by id) at its new pose."""
+        self.bodies[body.id] = body
+        self._dirty = True
+
+    def remove(self, body_id: str) -> None:
+        self.bodies.pop(body_id, None)
+        self._dirty = True
+
+    def _index(self) -> None:
+        if not self._dirty:
+            return
+        self._ids = list(self.bodies)
+        self._cores = np.array([self.bodies[i].geometry() for i in self._ids], dtype=object)
+        self._radii = np.array([self.bodies[i].radius for i in self._ids], dtype=float)
+        self._tree = shapely.STRtree(self._cores) if self._ids else None
+        self._rmax = float(self._radii.max()) if self._ids else 0.0
+        self._dirty = False
+
+    # -- queries ----------------------------------------------------------------------
+    def inside(self, geom: shapely.Geometry, radius: float) -> bool:
+        x0, y0, x1, y1 = geom.bounds
+        return x0 >= radius and y0 >= radius and x1 <= self.area[0] - radius and y1 <= self.area[1] - radius
+
+    def _hits(self, geom, radius, tree, cores, radii, rmax) -> np.ndarray:
+        if tree is None:
+            return np.empty(0, dtype=int)
+        reach = radius + self.clearance
+        idx = tree.query(geom, predicate="dwithin", distance=reach + rmax)
+        if idx.size == 0:
+            return idx
+        d = shapely.distance(geom, cores[idx])
+        return idx[d < reach + radii[idx] - 1e-9]
+
+    def fixed_hits(self, geom: shapely.Geometry, radius: float) -> np.ndarray:
+        """Indices of fixed entries within reach of the footprint (geom, radius)."""
+        return self._hits(geom, radius, self._fixed_tree, self._fixed, self._fixed_r, self._fixed_rmax)
+
+    def blockers(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = ()) -> list[str]:
+        """Ids of movable bodies within reach of the footprint, sorted."""
+        self._index()
+        idx = self._hits(geom, radius, self._tree, self._cores, self._radii, self._rmax)
+        skip = set(ignore)
+        return sorted(self._ids[i] for i in idx if self._ids[i] not in skip)
+
+    def is_free(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = (),
+                exempt_fixed: frozenset[int] = frozenset()) -> bool:
+        """True when the footprint (or the area it sweeps, for a segment) is clear.
+
+        ``exempt_fixed``: fixed entries not to count (ones an object already lies on).
+        """
+        if not self.inside(geom, radius):
+            return False
+        hits = self.fixed_hits(geom, radius)
+        if hits.size and not set(hits.tolist()) <= exempt_fixed:
+            return False
+        return not self.blockers(geom, radius, ignore)
+
+    def slack(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = (),
+              horizon: float = 1e3) -> float:
+        """Smallest spare distance to anything (negative inside), capped at ``horizon``."""
+        self._index()
+        x0, y0, x1, y1 = geom.bounds
+        best = min(x0, y0, self.area[0] - x1, self.area[1] - y1) - radius
+        reach = radius + self.clearance
+        skip = set(ignore)
+        for tree, cores, radii, rmax, ids in (
+                (self._fixed_tree, self._fixed, self._fixed_r, self._fixed_rmax, None),
+                (self._tree, getattr(self, "_cores", None), getattr(self, "_radii", None), self._rmax,
+                 getattr(self, "_ids", None))):
+            if tree is None:
+                continue
+            idx = tree.query(geom, predicate="dwithin", distance=reach + rmax + horizon)
+            if ids is not None:
+                idx = np.array([i for i in idx if ids[i] not in skip], dtype=int)
+            if idx.size:
+                d = shapely.distance(geom, cores[idx]) - radii[idx] - reach
+                best = min(best, float(d.min()))
+        return min(best, horizon)

@@ -1,0 +1,444 @@
+"""Rods by zigzag: pushes near alternate ends, each swinging the rod about a pivot near
+the far end (seed §4.3, eq. 4.10), so the rod walks and turns toward its slot.
+
+Primitive: the tip, beside the rod at a fraction ``f`` of its length from one end (never
+near l = L/2, the bifurcation), moves straight and perpendicular to the axis by a depth
+δ. Under the pivot model the rod turns about the pivot S at s = l + √(l² − lL + L²/2)
+from the pushed end (0.74 L for f = 0.1), by φ with tan φ ≈ δ / (s − l); the planner
+simulates every push with the model (``nanoasm.world.pivot.rod_step``) to know the pose
+it leads to. A pair of equal swings at alternate ends, in the same direction, restores
+the angle and moves the rod sideways by ≈ 0.48 φ L; swings at alternate ends in opposite
+directions turn it about its centre by 2φ. A controller chooses, push by push:
+
+1. far from the slot along the rod's own axis: turn (about the centre) until the axis is
+   perpendicular to the way to go;
+2. walk sideways in pairs, the last pair scaled to land on the slot;
+3. turn to the slot's angle; then alignment pushes repeat 1-3 on the residual.
+
+Every push's swept area is checked against free space; when the direct approach is
+blocked, an SE(2) path from OMPL (validity over the rod's capsule) provides waypoints.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import time
+from dataclasses import dataclass
+
+import shapely
+
+from nanoasm.bodies import Body
+from nanoasm.world.pivot import RodPose, pivot_position, rod_step
+
+from .assign import axis_error
+from .freespace import FreeSpace
+from .options import PlanOptions
+
+Point = tuple[float, float]
+
+
+@dataclass(frozen=True)
+class RodPush:
+    """One push: the tip's straight path in contact, and the pose the model predicts."""
+
+    tip_path: tuple[Point, Point]
+    pose: Body
+
+
+def _unit(deg: float) -> tuple[float, float]:
+    t = math.radians(deg)
+    return math.cos(t), math.sin(t)
+
+
+def simulate_push(rod: Body, tip0: Point, tip1: Point, tip_radius: float, step: float | None = None) -> Body:
+    """Pose after the tip moves straight from ``tip0`` to ``tip1`` (pivot model)."""
+    pose = RodPose(rod.at[0], rod.at[1], rod.angle, rod.length, rod.diameter)
+    dist = math.dist(tip0, tip1)
+    n = max(1, math.ceil(dist / (step or max(rod.length / 400.0, 0.5))))
+    dx, dy = (tip1[0] - tip0[0]) / n, (tip1[1] - tip0[1]) / n
+    x, y = tip0
+    for _ in range(n):
+        pose = rod_step(pose, (x, y), (dx, dy), tip_radius=tip_radius).pose
+        x, y = x + dx, y + dy
+    # keep the angle continuous (no modulo 180) so "end A" stays the same physical end
+    angle = rod.angle + math.remainder(pose.angle - rod.angle, 360.0)
+    return Body(rod.id, rod.kind, (pose.x, pose.y), rod.diameter, angle, rod.length)
+
+
+def push_primitive(rod: Body, end: int, side: int, swing: float, options: PlanOptions) -> tuple[Point, Point]:
+    """Tip path of a push near end ``end`` (−1: A, +1: B) toward side ``side`` (+1: +n)
+    that turns the rod by about ``swing`` degrees under the pivot model."""
+    L, f = rod.length, options.rod_push_point
+    l = f * L
+    s = float(pivot_position(l, L))                    # from the pushed end (eq. 4.10)
+    lever = s - l
+    ax, ay = _unit(rod.angle)
+    nx, ny = -ay, ax
+    u = end * (L / 2 - l)                             # push point along the axis from the centre
+    off = rod.radius + options.tip_radius
+    px = rod.at[0] + u * ax - side * off * nx
+    py = rod.at[1] + u * ay - side * off * ny
+    depth = lever * math.tan(math.radians(min(abs(swing), 60.0))) + 0.0
+    # the tip starts a little short of contact so the push begins cleanly
+    lead = 0.25 * rod.radius
+    start = (px - side * lead * nx, py - side * lead * ny)
+    end_pt = (px + side * depth * nx, py + side * depth * ny)
+    return start, end_pt
+
+
+def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str, clearance: float | None = None,
+               exempt: frozenset[int] = frozenset()) -> bool:
+    """The rod's capsule is clear at a, b and poses between (2° apart).
+
+    ``exempt``: fixed things not to count (ones the rod started on, to be pushed off).
+    """
+    if clearance is not None:
+        saved = space.clearance
+        space.clearance = clearance
+        try:
+            return swept_free(space, a, b, ignore, None, exempt)
+        finally:
+            space.clearance = saved
+    turn = axis_error(a.angle, b.angle)
+    n = max(1, math.ceil(turn / 2.0), math.ceil(math.dist(a.at, b.at) / max(a.radius, 1.0)))
+    # interpolate along the shorter way round the axis angle
+    d_ang = math.remainder(b.angle - a.angle, 180.0)
+    for k in range(n + 1):
+        t = k / n
+        pose = Body(a.id, "rod", (a.at[0] + t * (b.at[0] - a.at[0]), a.at[1] + t * (b.at[1] - a.at[1])),
+                    a.diameter, a.angle + t * d_ang, a.length)
+        if not space.is_free(pose.geometry(), pose.radius, (ignore,), exempt):
+            return False
+    return True
+
+
+def _tip_free(space: FreeSpace, tip: Point, tip_radius: float, ignore: str) -> bool:
+    saved = space.clearance
+    space.clearance = 0.0
+    try:
+        return space.is_free(shapely.Point(tip), tip_radius, (ignore,))
+    finally:
+        space.clearance = saved
+
+
+@dataclass(frozen=True)
+class Macro:
+    """A short push sequence and, per push, its tip path and the pose after it, all in
+    the rod's own frame (centre at the origin, axis along +x): the pivot model is
+    invariant under rigid motions, so one simulation serves every pose."""
+
+    moves: tuple[tuple[int, int, float], ...]
+    tips: tuple[tuple[Point, Point], ...]              # in the frame of the macro's start
+    poses: tuple[tuple[float, float, float], ...]      # (x, y, angle) after each push, same frame
+
+    @property
+    def size(self) -> int:
+        return len(self.moves)
+
+
+def _place(pose: Body, local: tuple[float, float, float]) -> Body:
+    c, s = _unit(pose.angle)
+    x, y, a = local
+    return Body(pose.id, "rod", (pose.at[0] + c * x - s * y, pose.at[1] + s * x + c * y),
+                pose.diameter, pose.angle + a, pose.length)
+
+
+def _place_point(pose: Body, p: Point) -> Point:
+    c, s = _unit(pose.angle)
+    return pose.at[0] + c * p[0] - s * p[1], pose.at[1] + s * p[0] + c * p[1]
+
+
+def macro_library(rod: Body, options: PlanOptions, swings: tuple[float, ...], quads: bool) -> list[Macro]:
+    """Singles (turn about a pivot near the far end), pairs at alternate ends (walk
+    sideways, or turn about the centre) and, if ``quads``, walk-and-return pairs whose
+    axial drift moves the rod along its axis."""
+    canon = Body(rod.id, "rod", (0.0, 0.0), rod.diameter, 0.0, rod.length)
+    seqs = []
+    for sw in swings:
+        for e in (-1, 1):
+            for side in (-1, 1):
+                seqs.append(((e, side, sw),))
+                seqs.append(((e, side, sw), (-e, side, sw)))        # walk
+                seqs.append(((e, side, sw), (-e, -side, sw)))       # turn about the centre
+                if quads:
+                    seqs.append(((e, side, sw), (-e, side, sw), (e, -side, sw), (-e, -side, sw)))
+    out = []
+    for seq in seqs:
+        pose, tips, poses = canon, [], []
+        for end, side, sw in seq:
+            t0, t1 = push_primitive(pose, end, side, sw, options)
+            pose = simulate_push(pose, t0, t1, options.tip_radius)
+            tips.append((t0, t1))
+            poses.append((pose.at[0], pose.at[1], pose.angle))
+        out.append(Macro(seq, tuple(tips), tuple(poses)))
+    return out
+
+
+def _rotation_sweep(space: FreeSpace, a: Body, b: Body, clearance: float | None,
+                    exempt: frozenset[int]) -> bool:
+    """Swept check of one push: the rod turns about a (nearly) fixed pivot from a to b."""
+    dth = math.radians(b.angle - a.angle)
+    if abs(dth) < 1e-9:
+        return swept_free(space, a, b, a.id, clearance, exempt)
+    # fixed point of the rigid motion a -> b
+    c, s = math.cos(dth), math.sin(dth)
+    ax, ay = a.at
+    bx, by = b.at
+    # b = R(a - p) + p  =>  (I - R) p = b - R a
+    rx, ry = bx - (c * ax - s * ay), by - (s * ax + c * ay)
+    det = (1 - c) ** 2 + s * s
+    px = ((1 - c) * rx - s * ry) / det
+    py = (s * rx + (1 - c) * ry) / det
+    n = max(1, math.ceil(abs(math.degrees(dth)) / 2.0))
+    prev = a
+    for k in range(1, n + 1):
+        t = dth * k / n
+        ct, st = math.cos(t), math.sin(t)
+        dx, dy = ax - px, ay - py
+        pose = Body(a.id, "rod", (px + ct * dx - st * dy, py + st * dx + ct * dy), a.diameter,
+                    a.angle + math.degrees(t), a.length)
+        if not swept_free(space, prev, pose, a.id, clearance, exempt):
+            return False
+        prev = pose
+    return True
+
+
+class RodController:
+    """Finds zigzag pushes for one rod: a lattice search over push macros under the pivot
+    model (fewest pushes), with swept-area checks; OMPL's SE(2) path guides it when the
+    search alone does not get through."""
+
+    def __init__(self, space: FreeSpace, options: PlanOptions, pos_tol: float, ang_tol: float,
+                 max_expansions: int = 3000):
+        self.space, self.options = space, options
+        self.pos_tol, self.ang_tol = pos_tol, ang_tol
+        self.max_expansions = max_expansions
+        self.clearance: float | None = None     # None: the space's own (full) clearance
+        self.exempt: frozenset[int] = frozenset()
+        self._library: dict[tuple, tuple[list[Macro], list[Macro]]] = {}
+        self.deadline = math.inf
+
+    # -- macros ---------------------------------------------------------------------
+    def _macros(self, rod: Body) -> tuple[list[Macro], list[Macro]]:
+        key = (round(rod.length, 6), round(rod.diameter, 6))
+        if key not in self._library:
+            big = self.options.rod_swing
+            far = macro_library(rod, self.options, (big, big / 2, big / 4), quads=False)
+            near = macro_library(rod, self.options, (0.5, 1.0, 2.0, 4.0, 8.0, 16.0), quads=True)
+            self._library[key] = (far, [m for m in near if max(mv[2] for mv in m.moves) <= big])
+        return self._library[key]
+
+    def _realise(self, rod: Body, macro: Macro) -> list[RodPush] | None:
+        """World pushes of a macro from ``rod``, or None if any collides."""
+        out, prev = [], rod
+        for (t0, t1), local in zip(macro.tips, macro.poses):
+            w0, w1 = _place_point(rod, t0), _place_point(rod, t1)
+            after = _place(rod, local)
+            if not _tip_free(self.space, w0, self.options.tip_radius, rod.id):
+                return None
+            if not _rotation_sweep(self.space, prev, after, self.clearance, self.exempt):
+                return None
+            out.append(RodPush((w0, w1), after))
+            prev = after
+        return out
+
+    # -- goal tests and costs -------------------------------------------------------
+    def _done(self, rod: Body, goal: Body, pos_tol: float, ang_tol: float) -> bool:
+        return (math.dist(rod.at, goal.at) <= pos_tol
+                and abs(math.remainder(goal.angle - rod.angle, 180.0)) <= ang_tol)
+
+    def _cost(self, rod: Body, goal: Body) -> float:
+        ang = math.radians(math.remainder(goal.angle - rod.angle, 180.0))
+        scale = self.pos_tol / max(math.radians(self.ang_tol), 1e-9)
+        return math.hypot(goal.at[0] - rod.at[0], goal.at[1] - rod.at[1], ang * scale)
+
+    # -- search ---------------------------------------------------------------------
+    def _search(self, rod: Body, goal: Body, near_pos: float, near_ang: float
+                ) -> list[RodPush] | None:
+        """Weighted A* over far macros (cost: pushes) to within (near_pos, near_ang)."""
+        far, _ = self._macros(rod)
+        phi = math.radians(self.options.rod_swing)
+        lateral = 0.24 * phi * rod.length                   # sideways per push, walking
+        cell = max(lateral / 2, 1.0)
+
+        def h(p: Body) -> float:
+            d = math.dist(p.at, goal.at)
+            a = abs(math.remainder(goal.angle - p.angle, 180.0))
+            return 2.0 * max(d / lateral, a / self.options.rod_swing)
+
+        def key(p: Body) -> tuple:
+            return (round(p.at[0] / cell), round(p.at[1] / cell), round((p.angle % 180.0) / 6.0) % 30)
+
+        # lazy weighted A*: an edge's collision checks run when its node is popped
+        counter = 0
+        heap = [(h(rod), 0, counter, rod, None, None)]
+        closed: set[tuple] = set()
+        expansions = 0
+        while heap and expansions < self.max_expansions and time.perf_counter() < self.deadline:
+            _, g, _, pose, parent, macro = heapq.heappop(heap)
+            k = key(pose)
+            if k in closed:
+                continue
+            trail = None
+            if parent is not None:
+                step = self._realise(parent[0], macro)
+                if step is None:
+                    continue
+                trail = (parent[1], step)
+            closed.add(k)
+            if self._done(pose, goal, near_pos, near_ang):
+                pushes: list[RodPush] = []
+                while trail is not None:
+                    trail, step = trail
+                    pushes[:0] = step
+                return pushes
+            expansions += 1
+            for m in far:
+                after = _place(pose, m.poses[-1])
+                if key(after) in closed or not self.space.inside(after.geometry(), after.radius):
+                    continue
+                counter += 1
+                heapq.heappush(heap, (g + m.size + h(after), g + m.size, counter, after, (pose, trail), m))
+        return None
+
+    def _finish(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body, bool]:
+        """Greedy fine macros until within tolerance; small moves need only avoid contact."""
+        saved = self.clearance
+        self.clearance = 0.0
+        try:
+            return self._finish_greedy(rod, goal, budget)
+        finally:
+            self.clearance = saved
+
+    def _finish_greedy(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body, bool]:
+        _, near = self._macros(rod)
+        out: list[RodPush] = []
+        while len(out) < budget:
+            if self._done(rod, goal, self.pos_tol, self.ang_tol):
+                return out, rod, True
+            now = self._cost(rod, goal)
+            ranked = sorted((self._cost(_place(rod, m.poses[-1]), goal) + 1e-3 * m.size, i)
+                            for i, m in enumerate(near))
+            step = None
+            for cost, i in ranked:
+                if cost >= now:
+                    break
+                step = self._realise(rod, near[i])
+                if step is not None:
+                    break
+            if step is None:
+                return out, rod, False
+            out += step
+            rod = step[-1].pose
+        return out, rod, self._done(rod, goal, self.pos_tol, self.ang_tol)
+
+    def _leg(self, rod: Body, goal: Body, near_pos: float, near_ang: float) -> list[RodPush] | None:
+        if self._done(rod, goal, near_pos, near_ang):
+            return []
+        return self._search(rod, goal, near_pos, near_ang)
+
+    def pushes(self, rod: Body, goal: Body, max_pushes: int = 80) -> tuple[list[RodPush], Body, bool]:
+        """Pushes from ``rod`` to ``goal``; returns them, the final pose, success.
+
+        The direct search may take ``options.time_budget`` seconds, the legs along an
+        SE(2) path three times that."""
+        saved = self.space.clearance
+        self.space.clearance = 0.0
+        self.exempt = frozenset(self.space.fixed_hits(rod.geometry(), rod.radius).tolist())
+        self.space.clearance = saved
+        near_pos = 0.3 * math.radians(self.options.rod_swing) * rod.length
+        near_ang = self.options.rod_swing / 2
+        cramped = not swept_free(self.space, rod, rod, rod.id, None, self.exempt)
+        try:
+            # a rod that starts closer to its neighbours than the clearance only avoids contact
+            self.clearance = 0.0 if cramped else None
+            legs = [goal]
+            self.deadline = time.perf_counter() + self.options.time_budget
+            first = self._leg(rod, goal, near_pos, near_ang)
+            if first is None:
+                self.deadline = time.perf_counter() + 3 * self.options.time_budget
+                self.clearance = 0.0 if cramped else self.options.tip_radius   # as the SE(2) path
+                waypoints = se2_waypoints(self.space, rod, goal, self.options)
+                if not waypoints:
+                    return [], rod, False
+                legs = waypoints[1:]
+            out: list[RodPush] = []
+            pose = rod
+            for i, wp in enumerate(legs):
+                step = first if (i == 0 and first is not None) else self._leg(pose, wp, near_pos, near_ang)
+                if step is None:
+                    return out, pose, False
+                out += step
+                pose = out[-1].pose if out else pose
+            rest, pose, ok = self._finish(pose, goal, max(max_pushes - len(out), 0))
+            return out + rest, pose, ok and len(out) + len(rest) <= max_pushes
+        finally:
+            self.clearance = None
+
+
+def _yaw(deg: float) -> float:
+    """Degrees to radians in [−π, π), OMPL's SO(2) range (π itself is out of bounds)."""
+    return (math.radians(deg) + math.pi) % (2 * math.pi) - math.pi
+
+
+def se2_waypoints(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions) -> list[Body] | None:
+    """Poses from ``rod`` to ``goal`` in SE(2) (OMPL), the capsule clear by the tip radius
+    along the way; None when OMPL finds none within the budget."""
+    from ompl import base as ob, geometric as og, util as ou
+
+    ou.setLogLevel(ou.LogLevel.LOG_NONE)
+    ou.RNG.setSeed(options.seed + 2)
+    w, h = space.area
+    r = rod.radius
+    sp = ob.SE2StateSpace()
+    bounds = ob.RealVectorBounds(2)
+    bounds.setLow(0, r), bounds.setHigh(0, w - r), bounds.setLow(1, r), bounds.setHigh(1, h - r)
+    sp.setBounds(bounds)
+    si = ob.SpaceInformation(sp)
+    clearance = options.tip_radius
+
+    def pose(s) -> Body:
+        return Body(rod.id, "rod", (s.getX(), s.getY()), rod.diameter, math.degrees(s.getYaw()), rod.length)
+
+    class Validity(ob.StateValidityChecker):
+        def isValid(self, s):
+            p = pose(s)
+            return swept_free(space, p, p, rod.id, clearance)
+
+    class Sweeps(ob.MotionValidator):
+        def checkMotion(self, s1, s2, *rest):
+            return swept_free(space, pose(s1), pose(s2), rod.id, clearance)
+
+    validity = Validity(si)
+    si.setStateValidityChecker(validity)
+    sweeps = Sweeps(si)
+    si.setMotionValidator(sweeps)
+    si.setup()
+    ss = og.SimpleSetup(si)
+    a, b = sp.allocState(), sp.allocState()
+    a.setX(rod.at[0]), a.setY(rod.at[1]), a.setYaw(_yaw(rod.angle))
+    # a rod's axis is symmetric: aim for the goal angle nearest the current one
+    goal_angle = rod.angle + math.remainder(goal.angle - rod.angle, 180.0)
+    b.setX(goal.at[0]), b.setY(goal.at[1]), b.setYaw(_yaw(goal_angle))
+    ss.setStartAndGoalStates(a, b)
+    objective = ob.PathLengthOptimizationObjective(si)
+    objective.setCostThreshold(ob.Cost(1e18))
+    ss.setOptimizationObjective(objective)
+    ss.setPlanner(og.RRTConnect(si))
+    status = ss.solve(options.time_budget)
+    if status.getStatus() != ob.PlannerStatus.EXACT_SOLUTION:
+        return None
+    ss.simplifySolution(min(0.2, options.time_budget))
+    path = ss.getSolutionPath()
+    # legs of about half a rod length: each is a short search for the zigzag
+    length = sum(math.dist((p.getX(), p.getY()), (q.getX(), q.getY()))
+                 for p, q in zip(path.getStates(), path.getStates()[1:]))
+    path.interpolate(max(2, math.ceil(length / (rod.length / 2)) + 1))
+    states = [pose(q) for q in path.getStates()]
+    # keep angles continuous along the path
+    out = [states[0]]
+    for p in states[1:]:
+        ang = out[-1].angle + math.remainder(p.angle - out[-1].angle, 360.0)
+        out.append(Body(p.id, "rod", p.at, p.diameter, ang, p.length))
+    return out

@@ -1,0 +1,114 @@
+"""Order of the moves: a dependency graph over fills and parkings (networkx).
+
+Nodes are ``("fill", target_id)`` and ``("park", object_id)``. Edges say "before":
+
+* hard: a slot held by another object is cleared first: the holder's own fill, or a
+  parking of the holder when it has no slot of its own;
+* soft: a move whose straight corridor crosses another slot goes before that slot is
+  filled; an object lying in another move's corridor moves first.
+
+Cycles are broken deterministically: a soft edge is dropped (the path planner goes
+around), or, for a cycle of hard edges (objects in each other's slots), one holder is
+parked first where no later path needs the space.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import networkx as nx
+import shapely
+
+from nanoasm.bodies import Body
+
+Node = tuple[str, str]
+
+
+def _footprint(b: Body, grow: float = 0.0) -> shapely.Geometry:
+    return b.geometry().buffer(b.radius + grow, quad_segs=8)
+
+
+def dependency_graph(moves: Sequence[tuple[str, str]], targets: Mapping[str, Body],
+                     objects: Mapping[str, Body], fixed_ids: set[str], clearance: float
+                     ) -> tuple[nx.DiGraph, dict[str, str]]:
+    """Build the graph; returns it and ``blocked`` {target id: holder id} for slots held by
+    something that can never move (wires, edge objects)."""
+    g = nx.DiGraph()
+    slot_of = {o: t for t, o in moves}
+    for t, _ in moves:
+        g.add_node(("fill", t))
+    blocked: dict[str, str] = {}
+
+    # hard edges: slot holders leave first
+    movable = [o for o in objects.values()]
+    tree = shapely.STRtree([_footprint(o) for o in movable])
+    for t, obj_id in moves:
+        slot = _footprint(targets[t])
+        for k in tree.query(slot, predicate="intersects"):
+            holder = movable[k]
+            if holder.id == obj_id or slot.intersection(_footprint(holder)).area < 1e-6:
+                continue
+            if holder.id in fixed_ids:
+                blocked.setdefault(t, holder.id)
+            elif holder.id in slot_of:
+                g.add_edge(("fill", slot_of[holder.id]), ("fill", t), hard=True)
+            else:
+                g.add_edge(("park", holder.id), ("fill", t), hard=True)
+
+    # soft edges: corridors versus slots and versus objects in the way
+    corridors = {}
+    for t, obj_id in moves:
+        o, tg = objects[obj_id], targets[t]
+        line = shapely.LineString([o.at, tg.at]) if o.at != tg.at else shapely.Point(o.at)
+        # a rod walks by swinging its ends: it sweeps about half its length either side
+        reach = o.length / 2 if o.kind == "rod" else o.radius
+        corridors[t] = line.buffer(reach + clearance, quad_segs=4)
+    ctree_ids = list(corridors)
+    ctree = shapely.STRtree([corridors[t] for t in ctree_ids])
+    for t2, _ in moves:
+        for k in ctree.query(_footprint(targets[t2]), predicate="intersects"):
+            t1 = ctree_ids[k]
+            if t1 != t2 and not g.has_edge(("fill", t2), ("fill", t1)):
+                g.add_edge(("fill", t1), ("fill", t2), hard=False)
+    for t2, obj2 in moves:
+        for k in ctree.query(_footprint(objects[obj2]), predicate="intersects"):
+            t1 = ctree_ids[k]
+            if t1 != t2 and not g.has_edge(("fill", t2), ("fill", t1)) and \
+                    not g.has_edge(("fill", t1), ("fill", t2)):
+                g.add_edge(("fill", t2), ("fill", t1), hard=False)
+    return g, blocked
+
+
+def break_cycles(g: nx.DiGraph, slot_of: Mapping[str, str]) -> list[str]:
+    """Make ``g`` acyclic in place; returns objects that must be parked to do so."""
+    parked: list[str] = []
+    while True:
+        try:
+            cycle = nx.find_cycle(g)
+        except nx.NetworkXNoCycle:
+            return parked
+        soft = sorted((u, v) for u, v, *_ in cycle if not g.edges[u, v].get("hard"))
+        if soft:
+            g.remove_edge(*soft[-1])
+            continue
+        # objects sitting in each other's slots: park the holder of the first edge
+        u, v = min((u, v) for u, v, *_ in cycle)
+        holder = next(o for o, t in slot_of.items() if t == u[1])
+        g.remove_edge(u, v)
+        g.add_edge(("park", holder), v, hard=True)
+        parked.append(holder)
+
+
+def order(moves: Sequence[tuple[str, str]], targets: Mapping[str, Body], objects: Mapping[str, Body],
+          fixed_ids: set[str], clearance: float, effort: Mapping[str, float]
+          ) -> tuple[list[Node], dict[str, str]]:
+    """Deterministic order of fills and parkings; ties go to the cheaper move first."""
+    g, blocked = dependency_graph(moves, targets, objects, fixed_ids, clearance)
+    for t in blocked:
+        g.remove_node(("fill", t))
+    break_cycles(g, {o: t for t, o in moves})
+
+    def key(n: Node) -> tuple:
+        return (0 if n[0] == "park" else 1, effort.get(n[1], 0.0), n[1])
+
+    return list(nx.lexicographical_topological_sort(g, key=key)), blocked
