@@ -238,6 +238,9 @@ class _Bench:
     def signals(self):
         return 0.0, 0.0
 
+    def position(self):
+        return self._last.copy()
+
     def park(self) -> None:
         path = ramp(self._last, self._config.rest_codes(), self._config)
         if len(path):

@@ -307,6 +307,12 @@ class Instrument(Protocol):
         """The current photodiode signals ``(S_n, S_l)`` in volts."""
         ...
 
+    def position(self) -> np.ndarray:
+        """The DAC's present output, ``(3,)`` int codes: the last sample written, or where
+        a scan, a scan line or park left the tip. A stream must start within one slew
+        step of it."""
+        ...
+
     def park(self) -> None:
         """Lift the tip and move the DAC to its safe rest value (:meth:`InstrumentConfig.rest_codes`)
         within the slew limit. Safe to call at any time, from any state, repeatedly;
