@@ -30,6 +30,10 @@ _PLANNERS = {
     "prmstar": "PRMstar", "fmt": "FMT", "kpiece": "KPIECE1", "bkpiece": "BKPIECE1",
     "lbkpiece": "LBKPIECE1",
 }
+#: Planners that build their roadmap in a thread of their own: a cost written in Python
+#: would need the interpreter from that thread while solve() holds it (a deadlock), so
+#: they optimise path length only.
+THREADED = {"prm", "prmstar"}
 #: Planners that keep improving a solution within their budget.
 OPTIMIZING = {"rrtstar", "informedrrtstar", "bitstar", "prmstar", "fmt"}
 
@@ -167,7 +171,7 @@ def ompl_path(mover: Mover, start: Point, goal: Point, options: PlanOptions) -> 
     b[0], b[1] = goal
     ss.setStartAndGoalStates(a, b)
     length = ob.PathLengthOptimizationObjective(si)
-    if options.planner in OPTIMIZING:
+    if options.planner in OPTIMIZING and options.planner not in THREADED:
         objective = ob.MultiOptimizationObjective(si)
         objective.addObjective(length, 1.0)
         clearance_cost = ClearanceCost(si, True)

@@ -198,3 +198,30 @@ def test_replanning_is_cheap_when_nothing_moved_and_replans_when_something_did()
 def test_planner_names_are_checked():
     with pytest.raises(ValueError, match="planner must be one of"):
         PlanOptions(planner="astar")
+
+
+def test_every_planner_finds_a_detour_and_returns(tmp_path):
+    """Each OMPL planner, in a subprocess with a deadline: none may hang (a planner that
+    calls back into Python from its own thread would)."""
+    import subprocess
+    import sys
+
+    from nanoasm.planner import PLANNERS
+
+    code = (
+        "from nanoasm.bodies import Body\n"
+        "from nanoasm.cad.layout import Keepout, Layout, Tolerance\n"
+        "from nanoasm.planner import PlanOptions, plan_assembly\n"
+        "from nanoasm.world.environment import EnvObject, Environment\n"
+        "import sys\n"
+        "wall = ((2400.0, 500.0), (2600.0, 500.0), (2600.0, 4500.0), (2400.0, 4500.0))\n"
+        "lay = Layout((5000.0, 5000.0), (Body('p', 'particle', (4000.0, 2500.0), 100.0),),"
+        " (Keepout(wall),), Tolerance())\n"
+        "env = Environment((5000.0, 5000.0), (EnvObject('o1', 'particle', (1000.0, 2500.0), 100.0),))\n"
+        "for name in sys.argv[1:]:\n"
+        "    plan, _ = plan_assembly(lay, env, PlanOptions(planner=name, time_budget=0.2))\n"
+        "    assert not plan.unfilled, name\n"
+        "print('ok')\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code, *PLANNERS], capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr
