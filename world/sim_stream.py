@@ -1,0 +1,205 @@
+"""Playing one chunk of DAC samples: vectorised far from objects, sample by sample near them.
+
+The chunk's samples are split into runs. A sample is *slow* when the tip is in contact
+(z ≤ 0) and within the contact distance plus a margin of an object; every other sample is
+*fast*: lifted, or in contact far from every object. Fast runs cost a few array
+operations whatever their length and however many objects the sample holds (a lifted
+sample higher than the tallest object skips even the spatial query); slow runs step the
+pushing physics (:class:`~nanoasm.world.sim_push.PushPhysics`) once per sample. Pushes in
+progress end at the first fast sample. Once a slow run has moved something, the rest of
+the chunk is classified again.
+
+The tip, in the sample frame, is at ``piezo + deflection offset - drift offset``. Its
+deflection is ``max(0, H - z)`` with H the apex height of the surface under it (0 on the
+substrate, plateaus over obstacles, an object's profile when a lifted tip grazes it or
+the tip rides over one).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .drift_model import DriftModel
+from .sim_push import RELEASE, PushPhysics
+from .sim_signals import SignalModel, twist_deg
+
+
+@dataclass
+class TipState:
+    """The tip at the last sample played: piezo XY (scanner), tip XY (sample frame), Z, S̄_l, ride."""
+
+    piezo: np.ndarray
+    tip: tuple[float, float]
+    z: float
+    sl_bar: float = 0.0
+    ride: float = 0.0
+    motion: np.ndarray = field(default_factory=lambda: np.zeros(2))
+    f_lat: float = 0.0
+
+
+@dataclass(frozen=True, eq=False)
+class Played:
+    """Per sample: deflection (nm), lateral force (nN), unit motion ``(n, 2)``, tip ``(n, 2)``."""
+
+    deflection: np.ndarray
+    f_lat: np.ndarray
+    motion: np.ndarray
+    tip: np.ndarray
+
+
+def play_chunk(world: PushPhysics, model: SignalModel, nm: np.ndarray, off: np.ndarray,
+               state: TipState, max_step: float) -> Played:
+    """Play scanner-frame samples ``nm`` ``(n, 3)`` with drift offsets ``off`` ``(n, 2)``.
+
+    Updates ``state`` to the last sample; returns what the signals are made from.
+    """
+    piezo, z = nm[:, :2], nm[:, 2]
+    contact = z <= 0.0
+    ds, motion = _motion(piezo, contact, state)
+    k = model.lever.spring_constant
+    moved = np.any(motion != 0.0, axis=1)
+    f_fric = np.where(contact & moved, world.mu_ts * (k * np.maximum(-z, 0.0) + world.f_ts), 0.0)
+    sn, sl = model.bar_signals(f_fric, motion, np.maximum(-z, 0.0))
+    tip = piezo + model.tip_offset(sn, sl) - off
+    h_obs = world.obstacle_heights(tip[:, 0], tip[:, 1])
+    f_lat = f_fric.copy()
+    defl = np.maximum(h_obs - z, 0.0)
+    n, i, version = len(z), 0, None
+    margin = max_step + RELEASE + 2.0 * model.lever.c2 * world.max_height / model.lever.normal_gain + 1.0
+    while i < n:
+        if version != world.version:
+            slow, h_obj = _classify(world, tip[i:], z[i:], contact[i:], margin)
+            base, version = i, world.version
+        s = slow[i - base]
+        j = i + 1
+        while j < n and slow[j - base] == s:
+            j += 1
+        if s:
+            _slow_run(world, model, piezo, z, off, ds, motion, f_fric, h_obs, state, i, j, margin,
+                      defl, f_lat, tip)
+        else:
+            if world.episodes:
+                world.end_all()
+            defl[i:j] = np.maximum(np.maximum(h_obs[i:j], h_obj[i - base:j - base]) - z[i:j], 0.0)
+            sn, sl = model.bar_signals(f_fric[i:j], motion[i:j], defl[i:j])
+            tip[i:j] = piezo[i:j] + model.tip_offset(sn, sl) - off[i:j]
+            state.tip = (float(tip[j - 1, 0]), float(tip[j - 1, 1]))
+            state.sl_bar, state.ride = float(sl[-1]), 0.0
+        i = j
+    state.piezo = piezo[-1].copy()
+    state.z = float(z[-1])
+    state.motion = motion[-1].copy()
+    state.f_lat = float(f_lat[-1])
+    return Played(defl, f_lat, motion, tip)
+
+
+def _motion(piezo: np.ndarray, contact: np.ndarray, state: TipState) -> tuple[np.ndarray, np.ndarray]:
+    """``(ds, motion)``: piezo step length (nm) per sample and the unit direction of the
+    lateral force. In contact the direction of the last step is held while the piezo
+    stands still between DAC codes (static friction keeps the lever twisted); lifted, 0."""
+    prev = np.vstack([state.piezo[None, :], piezo[:-1]])
+    step = piezo - prev
+    ds = np.hypot(step[:, 0], step[:, 1])
+    unit = np.where(ds[:, None] > 0, step / np.where(ds > 0, ds, 1.0)[:, None], 0.0)
+    unit[~contact] = 0.0
+    event = (ds > 0) | ~contact
+    last = np.maximum.accumulate(np.where(event, np.arange(ds.size), -1))
+    motion = np.where((last >= 0)[:, None], unit[np.maximum(last, 0)], state.motion[None, :])
+    return ds, motion
+
+
+def _classify(world: PushPhysics, tip: np.ndarray, z: np.ndarray, contact: np.ndarray,
+              margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(slow, h_obj)``: which samples need the physics, and the apex height over objects
+    for the lifted ones that graze an object."""
+    n = len(z)
+    slow, h_obj = np.zeros(n, bool), np.zeros(n)
+    low = contact | (z < world.max_height)
+    if not low.any():
+        return slow, h_obj
+    idx = np.flatnonzero(low)
+    pts = tip[idx]
+    reach = world.tip_radius + margin
+    cands = world.candidates(pts.min(axis=0), pts.max(axis=0), reach)
+    if cands.size == 0:
+        return slow, h_obj
+    units = np.flatnonzero(np.isin(world.contacts.groups, cands))
+    gap = world.unit_gaps(units, pts[:, 0], pts[:, 1])
+    slow[idx] = contact[idx] & (gap < reach)
+    lifted = idx[~contact[idx]]
+    if lifted.size:
+        h_obj[lifted] = world.unit_heights(units, tip[lifted, 0], tip[lifted, 1])
+    return slow, h_obj
+
+
+def _slow_run(world: PushPhysics, model: SignalModel, piezo, z, off, ds, motion, f_fric, h_obs,
+              state: TipState, i: int, j: int, margin: float, defl, f_lat, tip) -> None:
+    """Samples ``i:j`` one by one through the pushing physics (results written in place)."""
+    lever = model.lever
+    (m00, m01), (m10, m11) = model.offset_matrix
+    r10, r11 = _rotation_row(model.psi)
+    kn, lg, k = lever.normal_gain, lever.lateral_gain, lever.spring_constant
+    lo, hi = tip[i:j].min(axis=0), tip[i:j].max(axis=0)
+    cands = world.candidates(lo, hi, world.tip_radius + margin)
+    p0, sl, ride = state.tip, state.sl_bar, state.ride
+    z_prev = z[i - 1] if i > 0 else state.z
+    held = f_lat[i - 1] if i > 0 else state.f_lat
+    for q in range(i, j):
+        sn = (max(ride, h_obs[q]) - z[q]) / kn
+        p1 = (piezo[q, 0] + m00 * sn + m01 * sl - off[q, 0], piezo[q, 1] + m10 * sn + m11 * sl - off[q, 1])
+        theta = world.half_angle + twist_deg(sl, lever)
+        lifting = z[q] > z_prev
+        pushing, f, h = world.step(cands, p0, p1, k * -z[q], theta, lifting=lifting,
+                                   lag=(m01 * sl, m11 * sl))
+        z_prev = z[q]
+        defl[q] = max(max(h, h_obs[q]) - z[q], 0.0)
+        if pushing:
+            f_lat[q] = f
+        elif ds[q] == 0.0 and not lifting:      # between DAC codes: the lever stays twisted
+            f_lat[q] = held
+        else:
+            f_lat[q] = f_fric[q]
+        held = f_lat[q]
+        sl = -f_lat[q] * (r10 * motion[q, 0] + r11 * motion[q, 1]) / lg
+        ride = h
+        tip[q] = p1
+        p0 = p1
+    state.tip, state.sl_bar, state.ride = p0, sl, ride
+
+
+def _rotation_row(psi: float) -> tuple[float, float]:
+    """Second row of R(ψ) (eq. 3.7): the cantilever-frame y of an AFM-frame vector."""
+    c, s = math.cos(math.radians(psi)), math.sin(math.radians(psi))
+    return -s, -c
+
+
+class MoveTracker:
+    """Registers the scanner's completed XY moves with the creep model.
+
+    A move ends when XY stays on one DAC code for ``stop_samples`` samples (a slow push,
+    whose code changes every few samples, stays one move); it is recorded at that sample
+    as the step from where the previous move ended (moves under ``[creep] min_step`` add
+    nothing).
+    """
+
+    def __init__(self, drift: DriftModel, start_xy: np.ndarray, stop_samples: int):
+        self.drift = drift
+        self.start = np.asarray(start_xy, float).copy()
+        self.stop = max(1, int(stop_samples))
+        self.still = 0
+
+    def track(self, nm: np.ndarray, codes: np.ndarray, previous: np.ndarray, t: np.ndarray) -> None:
+        """Samples ``codes`` (their nm ``nm`` and times ``t``) played after ``previous``."""
+        prev = np.vstack([previous[None, :2], codes[:-1, :2]])
+        still = np.all(codes[:, :2] == prev, axis=1)
+        idx = np.arange(still.size)
+        last_move = np.maximum.accumulate(np.where(still, -1, idx))
+        count = np.where(last_move >= 0, idx - last_move, idx + 1 + self.still)
+        for k in np.flatnonzero(count == self.stop):
+            d = nm[k, :2] - self.start
+            self.drift.record_move(float(t[k]), float(d[0]), float(d[1]))
+            self.start = nm[k, :2].copy()
+        self.still = int(count[-1])
