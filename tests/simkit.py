@@ -18,7 +18,8 @@ EXACT = WorldParams(push=PushParams(pivot_scatter=0.0, path_scatter=0.0), vdw=Vd
 
 
 def world(objects, *, area=(4000.0, 4000.0), params: WorldParams = EXACT, seed: int = 1, obstacles=()):
-    return SimulatedAFM(Scene(area, tuple(objects), tuple(obstacles), params, seed))
+    # the scene's origin at the scanner's: sample and scanner frames agree at t = 0
+    return SimulatedAFM(Scene(area, tuple(objects), tuple(obstacles), params, seed), placement=(0.0, 0.0))
 
 
 def particle(at, d=50.0, id="p1") -> Body:

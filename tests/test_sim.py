@@ -265,3 +265,32 @@ def test_truth_reports_rods_with_angle_and_length():
 def test_scene_larger_than_the_scanner_is_refused():
     with pytest.raises(ValueError, match="exceeds the scanner"):
         world([], area=(100000.0, 1000.0))
+
+
+@pytest.mark.parametrize("angle", [0.0, 30.0, 45.0, 135.0, -45.0, -90.0])
+def test_a_push_in_any_direction_carries_the_particle(angle):
+    """A DAC draws a diagonal as a staircase of single-axis code steps; the particle must
+    follow the path, not each stair."""
+    import math
+
+    sim = world([particle((2000.0, 2000.0), d=90.0)])
+    u = np.array([math.cos(math.radians(angle)), math.sin(math.radians(angle))])
+    rc = 45.0 + sim.params.tip.radius
+    start = np.array([2000.0, 2000.0]) - u * (rc + 20.0)
+    push(sim, start, start + u * 620.0)
+    (p,) = sim.truth()
+    moved = np.array(p.at) - 2000.0
+    assert float(moved @ u) == pytest.approx(600.0 - 20.0, abs=25.0)
+    assert abs(float(moved @ np.array([-u[1], u[0]]))) < 25.0
+
+
+def test_by_default_the_scene_sits_centred_in_the_scanner_range():
+    from nanoasm.world.scene import Scene
+    from nanoasm.world.sim import SimulatedAFM
+
+    scene = Scene((4000.0, 4000.0), (particle((1000.0, 3000.0), d=80.0),), (), EXACT, 1)
+    sim = SimulatedAFM(scene)
+    px, py = sim.placement
+    assert (px, py) == pytest.approx(((90000 - 4000) / 2, (90000 - 4000) / 2))
+    line = sim.scan_line((px + 800.0, py + 3000.0), (px + 1200.0, py + 3000.0), 401)
+    assert abs(int(np.argmax(line)) - 200) <= 2           # the particle is under px + 1000

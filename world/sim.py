@@ -61,11 +61,29 @@ from .sim_stream import MoveTracker, TipState, play_chunk
 ROUGHNESS_RMS, ROUGHNESS_LENGTH = 0.2, 50.0
 #: Probability and rms (nm) of a whole-line height offset in a full scan.
 LINE_OFFSET_PROB, LINE_OFFSET_RMS = 0.02, 0.5
+#: Time constant (s) of the piezo amplifier's low-pass between the DAC and the scanner.
+PIEZO_TAU = 0.003
 #: XY at rest this long (s) ends a move; moves of at least ``[creep] min_step`` add creep.
 STOP_TIME = 0.05
 
 TAPPING, CONTACT = "tapping", "contact"
 _STREAMS = ("truth", "faults", "vdw", "drift", "surface", "scan", "signal")
+
+
+class PlacedDrift:
+    """The drift model seen from the scanner: a sample point ``p`` appears at
+    ``p + placement + drift.offset(t)``."""
+
+    def __init__(self, drift: DriftModel, placement: tuple[float, float]):
+        self.drift = drift
+        self.placement = placement
+
+    def offset(self, t):
+        dx, dy = self.drift.offset(t)
+        return dx + self.placement[0], dy + self.placement[1]
+
+    def record_move(self, t: float, dx: float, dy: float) -> bool:
+        return self.drift.record_move(t, dx, dy)
 
 
 class SimulatedAFM:
@@ -79,9 +97,13 @@ class SimulatedAFM:
         Seed of every random stream; defaults to ``scene.seed``.
     params : WorldParams, optional
         Physical parameters; defaults to ``scene.params``.
+    placement : (x, y), optional
+        Where the scene's origin lies in the scanner frame at t = 0 (nm); by default the
+        scene is centred in the scanner's XY range.
     """
 
-    def __init__(self, scene: Scene, *, seed: int | None = None, params: WorldParams | None = None):
+    def __init__(self, scene: Scene, *, seed: int | None = None, params: WorldParams | None = None,
+                 placement: tuple[float, float] | None = None):
         self.scene = scene
         self.params = scene.params if params is None else params
         if not isinstance(self.params, WorldParams):
@@ -94,7 +116,12 @@ class SimulatedAFM:
         self.seed = ss.entropy          # the seed given, or the fresh entropy drawn: reruns the world
         rng = dict(zip(_STREAMS, (np.random.default_rng(s) for s in ss.spawn(len(_STREAMS)))))
         self._clock = InstrumentClock(self.params.timing)
-        self._drift = DriftModel(self.params.drift, self.params.creep, rng["drift"], epoch=0.0)
+        # the sample sits centred under the scanner's range, as a user would place it
+        if placement is None:
+            placement = (0.5 * (cfg.xy_range[0] - scene.area[0]), 0.5 * (cfg.xy_range[1] - scene.area[1]))
+        self.placement = (float(placement[0]), float(placement[1]))
+        self._drift = PlacedDrift(DriftModel(self.params.drift, self.params.creep, rng["drift"], epoch=0.0),
+                                  self.placement)
         table, units, groups, wires = build_objects(scene.objects, self.params, rng["truth"])
         self._world = PushPhysics(table, units, groups, wires, self.params, scene.obstacles,
                                   rng["faults"], rng["vdw"])
@@ -104,6 +131,7 @@ class SimulatedAFM:
         self._rng_scan, self._rng_signal = rng["scan"], rng["signal"]
         self._last = cfg.rest_codes()
         rest = cfg.codes_to_nm(self._last)
+        self._piezo_xy = rest[:2].copy()
         self._state = TipState(rest[:2].copy(), (float(rest[0]), float(rest[1])), float(rest[2]))
         self._mode = TAPPING
         self._moves = MoveTracker(self._drift, rest[:2], round(STOP_TIME * cfg.sample_rate))
@@ -142,6 +170,7 @@ class SimulatedAFM:
     def _play(self, codes: np.ndarray, activity: str | None = None) -> SignalBlock:
         cfg = self.config
         nm = cfg.codes_to_nm(codes)
+        nm[:, :2] = self._smooth(nm[:, :2])
         n = nm.shape[0]
         n_contact = int(np.count_nonzero(nm[:, 2] <= 0.0))
         if n_contact and self._mode != CONTACT:
@@ -197,7 +226,8 @@ class SimulatedAFM:
                               int(n), tip=self._world.tip, noise_rms=self.params.noise.height_rms,
                               rng=self._rng_scan)
         self._clock.scan_line(int(n))
-        self._drift.record_move(self._clock.now, *(here - pb))
+        # the line itself (a to b) and the way back (b to here): from a back to here in all
+        self._drift.record_move(self._clock.now, *(here - pa))
         self._lift_in_place()
         return heights
 
@@ -247,6 +277,12 @@ class SimulatedAFM:
         code must never call it (a real instrument has no such method)."""
         return self._world.truth()
 
+    def true_offset(self, t: float) -> tuple[float, float]:
+        """Where a sample point appears shifted in the scanner frame at instrument time ``t``
+        (nm): the sample's placement plus the drift. For dry-run reports and tests ONLY (it
+        is how the report puts the truth into the frame of the run's first full scan)."""
+        return self._drift.offset(float(t))
+
     def footprints(self) -> tuple[Body, ...]:
         """Every contact footprint (a wire's segments as rods with ids ``"<id>#<k>"``): what
         a scan images. For dry-run reports and tests only."""
@@ -261,6 +297,20 @@ class SimulatedAFM:
                 "tip_radius": w.tip_radius}
 
     # -- helpers -----------------------------------------------------------------------------------
+    def _smooth(self, xy: np.ndarray) -> np.ndarray:
+        """The piezo follows the DAC through its amplifier's first-order low-pass
+        (``PIEZO_TAU``): the single-axis code steps of a diagonal path blur into the line."""
+        from scipy.signal import lfilter
+
+        a = 1.0 - math.exp(-1.0 / (PIEZO_TAU * self.config.sample_rate))
+        if self._piezo_xy is None:
+            self._piezo_xy = xy[0].copy()
+        out = np.empty_like(xy)
+        for k in range(2):
+            out[:, k], zf = lfilter([a], [1.0, a - 1.0], xy[:, k], zi=[(1.0 - a) * self._piezo_xy[k]])
+        self._piezo_xy = out[-1].copy()
+        return out
+
     def _surface_now(self):
         return replace(self._surface, bodies=self._world.unit_bodies())
 
@@ -284,7 +334,8 @@ class SimulatedAFM:
 
     def _region(self, region: Region | None) -> tuple[float, float, float, float]:
         if region is None:
-            return 0.0, 0.0, float(self.scene.area[0]), float(self.scene.area[1])
+            px, py = self.placement
+            return px, py, px + float(self.scene.area[0]), py + float(self.scene.area[1])
         if len(region) != 4 or not all(math.isfinite(v) for v in region):
             raise ValueError(f"region must be four finite numbers (x0, y0, x1, y1), got {region!r}")
         x0, y0, x1, y1 = (float(v) for v in region)

@@ -50,6 +50,27 @@ STILL = 1e-3
 PUSH, RIDE, GONE = "push", "ride", "gone"
 
 
+#: Length (nm) over which the tip's direction of motion is averaged: a path drawn by a DAC
+#: moves in a staircase of single-axis code steps, and the object follows the path, not
+#: each stair.
+HEADING_LENGTH = 30.0
+
+
+def _heading(ep: "Episode", p0, p1) -> tuple[float, float]:
+    """Unit direction of the tip's motion over the last ``HEADING_LENGTH`` nm of its path:
+    from a point that trails the tip by that much (or from where the push began)."""
+    if ep.trail is None:
+        ep.trail = (float(p0[0]), float(p0[1]))
+    dx, dy = p1[0] - ep.trail[0], p1[1] - ep.trail[1]
+    d = math.hypot(dx, dy)
+    if d == 0.0:
+        return ep.heading if ep.heading is not None else (0.0, 0.0)
+    ep.heading = (dx / d, dy / d)
+    if d > HEADING_LENGTH:
+        ep.trail = (p1[0] - ep.heading[0] * HEADING_LENGTH, p1[1] - ep.heading[1] * HEADING_LENGTH)
+    return ep.heading
+
+
 @dataclass
 class Episode:
     """The state of one push of one object."""
@@ -61,6 +82,8 @@ class Episode:
     branch: int = 1
     travelled: float = 0.0    # nm the tip moved while pushing
     moved: set[int] = field(default_factory=set)
+    heading: tuple[float, float] | None = None   # the tip's direction of motion
+    trail: tuple[float, float] | None = None     # a point HEADING_LENGTH behind the tip
 
 
 class PushPhysics(PushWorld):
@@ -204,8 +227,9 @@ class PushPhysics(PushWorld):
         sx, sy = p1[0] - p0[0], p1[1] - p0[1]
         ds = math.hypot(sx, sy)
         nx, ny, _ = particle_step(x, y, d, p0[0], p0[1], sx, sy, self.tip_radius)
-        if ds > 0.0 and (gx * sx + gy * sy) >= math.cos(math.radians(CAPTURE_DEG)) * dist * ds:
-            mx, my = sx / ds, sy / ds                                  # carried along the motion
+        hx, hy = _heading(ep, p0, p1)
+        if ds > 0.0 and (gx * hx + gy * hy) >= math.cos(math.radians(CAPTURE_DEG)) * dist:
+            mx, my = hx, hy                                            # carried along the motion
             b = gx * mx + gy * my
             adv = -b + math.sqrt(max(b * b - dist * dist + rc * rc, 0.0))
             e = math.radians(self.table.path_error[o])
