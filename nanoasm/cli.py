@@ -7,6 +7,7 @@ output file.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -318,6 +319,100 @@ def _with_progress(label: str, work):
         return work(progress)
 
 
+# -- dry-run --------------------------------------------------------------------------
+
+@app.command("dry-run")
+def dry_run_cmd(
+    scene_file: Annotated[Optional[Path], typer.Argument(metavar="SCENE", help="Scene (default: the "
+                                                         "bundled bowtie example).")] = None,
+    layout_file: Annotated[Optional[Path], typer.Argument(metavar="LAYOUT", help="Layout (default: "
+                                                          "the bundled bowtie).")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Seed of the simulated world (default: the "
+                                                     "scene's).")] = None,
+    strategy: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full or anchor.")] = "full",
+    report: Annotated[Optional[Path], typer.Option(help="Write the report (JSON) here.")] = None,
+    planner: Annotated[str, typer.Option(help="OMPL planner for detours.")] = "rrtconnect",
+    time_budget: Annotated[float, typer.Option(help="Seconds OMPL may spend on one path.")] = 1.0,
+) -> None:
+    """Assemble LAYOUT in a simulated world holding SCENE, exactly as a real run would."""
+    from nanoasm.cad.layout import load_layout
+    from nanoasm.dryrun import dry_run
+    from nanoasm.examples import path as example
+    from nanoasm.executor.strategy import STRATEGIES, ExecOptions
+    from nanoasm.planner.options import PLANNERS, PlanOptions
+    from nanoasm.world.scene import load_scene
+
+    if (scene_file is None) != (layout_file is None):
+        raise InputError(None, "SCENE LAYOUT", "give both a scene and a layout, or neither for the example")
+    scene_file = scene_file or example("bowtie_scene.toml")
+    layout_file = layout_file or example("bowtie.toml")
+    if strategy not in STRATEGIES:
+        raise InputError(None, "--strategy", f"unknown strategy {strategy!r}; one of {', '.join(STRATEGIES)}")
+    if planner not in PLANNERS:
+        raise InputError(None, "--planner", f"unknown planner {planner!r}; one of {', '.join(PLANNERS)}")
+    if not (_finite(time_budget) and time_budget > 0):
+        raise InputError(None, "--time-budget", f"must be positive, got {time_budget:g}")
+    if seed is not None and seed < 0:
+        raise InputError(None, "--seed", f"must not be negative, got {seed}")
+    if report is not None and report.suffix.lower() != ".json":
+        raise InputError(str(report), None, "report must end in .json")
+    scene = load_scene(scene_file)
+    layout = load_layout(layout_file)
+    options = ExecOptions(strategy=strategy)
+    plan_options = PlanOptions(planner=planner, time_budget=time_budget, seed=seed or 0)
+    outcome = _with_run_progress(lambda subs: dry_run(
+        scene, layout, seed=seed, options=options, plan_options=plan_options, subscribers=subs,
+        scene_name=str(scene_file), layout_name=str(layout_file)))
+    rep = outcome.report
+    if report is not None:
+        rep.save(report)
+    _print_summary(layout, outcome)
+    if report is not None:
+        print(f"{report}: written")
+
+
+def _with_run_progress(work):
+    """Run ``work(subscribers)`` with a progress line on a terminal."""
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    if not console.is_terminal:
+        return work([])
+    with console.status("dry-run: full scan") as status:
+        def follow(topic: str, doc: dict) -> None:
+            if topic == "event":
+                status.update(f"dry-run: {doc['text']}")
+            elif topic == "checkpoint":
+                c = doc.get("counts", {})
+                status.update(f"dry-run: {c.get('pushes', 0)} push(es) done, "
+                              f"{len(doc.get('remaining', []))} to go")
+        return work([follow])
+
+
+def _print_summary(layout, outcome) -> None:
+    from rich.console import Console
+    from rich.table import Table as RichTable
+
+    rep = outcome.report
+    n = len(layout.targets)
+    t = rep.instrument_time
+    table = RichTable(title=f"dry-run of {layout.name or 'layout'}: {len(outcome.filled)} of {n} slot(s) filled",
+                      show_header=False)
+    table.add_row("RMS error of filled slots", f"{outcome.rms_error:.1f} nm")
+    table.add_row("pushes (failed)", f"{rep.counts.pushes} ({rep.counts.failed_pushes})")
+    table.add_row("local scans / replans", f"{rep.counts.local_scans} / {rep.counts.replans}")
+    table.add_row("instrument time", f"{t.total / 60:.1f} min (full scan {t.full_scan / 60:.1f}, local scans "
+                                     f"{t.local_scan / 60:.1f}, pushing {t.push / 60:.1f}, travel {t.travel / 60:.1f})")
+    w = rep.wall_time
+    table.add_row("wall time", f"{w.total:.1f} s (identify {w.identify:.1f}, plan {w.plan:.1f}, execute {w.execute:.1f})")
+    for u in rep.unfilled:
+        table.add_row(f"unfilled {u.target}", u.reason)
+    missed = [a.target for a in rep.assignment if a.target not in outcome.filled]
+    for tid in missed:
+        table.add_row(f"missed {tid}", f"{outcome.errors.get(tid, float('nan')):.1f} nm off")
+    Console().print(table)
+
+
 # -- entry point --------------------------------------------------------------------
 
 def main(argv: list[str] | None = None) -> int:
@@ -340,14 +435,20 @@ def main(argv: list[str] | None = None) -> int:
         where = exc.ctx.command_path if exc.ctx else "nanoasm"
         print(f"nanoasm: error: {exc.format_message()} (see '{where} --help')", file=sys.stderr)
         return 2
-    except cx.Exit as exc:
+    except typer.Exit as exc:
         return exc.exit_code
-    except (cx.Abort, KeyboardInterrupt):
+    except (typer.Abort, KeyboardInterrupt):
         print("nanoasm: interrupted", file=sys.stderr)
         return 130
     except cx.ClickException as exc:
         print(f"nanoasm: error: {exc.format_message()}", file=sys.stderr)
         return exc.exit_code or 1
+    except Exception as exc:  # a bug of ours: one line, the traceback on request
+        if os.environ.get("NANOASM_DEBUG"):
+            raise
+        print(f"nanoasm: internal error: {type(exc).__name__}: {exc} "
+              "(run with NANOASM_DEBUG=1 for the traceback, and please report it)", file=sys.stderr)
+        return 3
     return 0
 
 

@@ -98,7 +98,7 @@ class _Session:
             d = math.dist(a, b)
             if d == 0:
                 return True
-            off = body.radius + rt
+            off = body.radius + rt + self.options.lead
             tip = (a[0] - (b[0] - a[0]) / d * off, a[1] - (b[1] - a[1]) / d * off)
             saved = self.space.clearance
             self.space.clearance = 0.0
@@ -114,12 +114,13 @@ class _Session:
         if path is None:
             return False
         off = obj.radius + self.options.tip_radius
+        lead = self.options.lead
         for a, b in zip(path, path[1:]):
             d = math.dist(a, b)
             if d < 1e-6:
                 continue
             ux, uy = (b[0] - a[0]) / d, (b[1] - a[1]) / d
-            tip = ((a[0] - ux * off, a[1] - uy * off), (b[0] - ux * off, b[1] - uy * off))
+            tip = ((a[0] - ux * (off + lead), a[1] - uy * (off + lead)), (b[0] - ux * off, b[1] - uy * off))
             self._emit(obj, target, tip, Body(obj.id, "particle", b, obj.diameter))
         if target is not None:
             self.stats.particle_path_length += path_length(path)

@@ -20,6 +20,9 @@ class PlanOptions:
         AFM tip radius, nm; paths keep object radius + tip radius + ``margin`` clear.
     margin : float
         Extra clearance, nm, around every path against obstacles, keep-outs and objects.
+    lead : float
+        The tip is put down this far (nm) short of contact, behind the object, so that an
+        object found a little off does not end up under the tip.
     planner : str
         OMPL planner for paths that a straight line cannot take (see ``PLANNERS``).
     time_budget : float
@@ -39,6 +42,7 @@ class PlanOptions:
 
     tip_radius: float = 10.0
     margin: float = 20.0
+    lead: float = 20.0
     planner: str = "rrtconnect"
     time_budget: float = 1.0
     rod_limit: float = 15.0
@@ -48,9 +52,9 @@ class PlanOptions:
     rod_push_point: float = 0.1
 
     def __post_init__(self) -> None:
-        for name in ("tip_radius", "margin", "time_budget", "rod_limit", "rod_swing"):
+        for name in ("tip_radius", "margin", "lead", "time_budget", "rod_limit", "rod_swing"):
             v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0) and not (name == "margin" and v == 0):
+            if not (math.isfinite(v) and v > 0) and not (name in ("margin", "lead") and v == 0):
                 raise ValueError(f"{name} must be positive and finite, got {v!r}")
         if self.planner not in PLANNERS:
             raise ValueError(f"planner must be one of {', '.join(PLANNERS)}, got {self.planner!r}")

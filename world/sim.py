@@ -156,8 +156,9 @@ class SimulatedAFM:
         return self._signals
 
     def position(self) -> np.ndarray:
-        """The DAC's present XYZ codes: the last sample written; after a scan, a scan line
-        or a calibration, the XY before it with Z raised to at least ``lift``."""
+        """The DAC's present XYZ codes: the last sample written; after a scan line its end,
+        lifted; after a full scan or a calibration, the XY before it with Z raised to at
+        least ``lift``."""
         return self._last.copy()
 
     def write(self, chunk: np.ndarray) -> SignalBlock:
@@ -213,7 +214,7 @@ class SimulatedAFM:
 
     def scan_line(self, a: tuple[float, float], b: tuple[float, float], n: int) -> np.ndarray:
         """Heights (nm) at ``n`` points from ``a`` to ``b`` (scanner frame), tapping mode, all
-        with the drift of the present time; the DAC returns to its XY, lifted."""
+        with the drift of the present time; the DAC is left at ``b``, lifted."""
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
             raise ValueError(f"n must be an integer of at least 2, got {n!r}")
         pa, pb = self._point("a", a), self._point("b", b)
@@ -226,8 +227,11 @@ class SimulatedAFM:
                               int(n), tip=self._world.tip, noise_rms=self.params.noise.height_rms,
                               rng=self._rng_scan)
         self._clock.scan_line(int(n))
-        # the line itself (a to b) and the way back (b to here): from a back to here in all
-        self._drift.record_move(self._clock.now, *(here - pa))
+        self._drift.record_move(self._clock.now, *(pb - pa))
+        # the DAC is left at the line's end, lifted (the next line of a pattern starts close by)
+        end = self.config.nm_to_codes(np.array([pb[0], pb[1], self.config.lift]))
+        self._last = end
+        self._piezo_xy = pb.copy()
         self._lift_in_place()
         return heights
 

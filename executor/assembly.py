@@ -1,0 +1,650 @@
+"""The assembly procedure: full scan -> identify -> plan -> for every push: reference scans,
+a local scan before, the push streamed with drift folded in and its signals watched, a
+local scan after, corrections or replanning -> checkpoint.
+
+It is a generator of :class:`~nanoasm.executor.engine.Msg` run by the
+:class:`~nanoasm.executor.engine.RunEngine`; it never touches an instrument (nor a
+simulated truth) itself. Frames: positions in the plan and the belief are in the layout
+frame (the frame of the first full scan); a layout point ``p`` is at ``p + offset(t)`` in
+the scanner frame, with ``offset`` the drift estimate of the strategy.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Generator
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from nanoasm.bodies import Body
+from nanoasm.cad.layout import Layout
+from nanoasm.drift import DriftFilter, DriftFilterParams
+from nanoasm.planner import Operation, Plan, PlanOptions, Replanner
+from nanoasm.planner.assign import in_slot
+from nanoasm.planner.plan import Assignment, Unfilled
+from nanoasm.world.cantilever import SEED_LEVER, Cantilever
+from nanoasm.world.environment import Environment
+from nanoasm.world.identify import identify
+
+from .belief import Belief
+from .dac import plan_dac
+from .dac_frames import LinearDrift
+from .trajectory import operation
+from .engine import Msg
+from .local_scan import particle_after, particle_before, rod_after, rod_before
+from .lost_search import find_lost_particle
+from .monitor import PushMonitor
+from .reaim import particle_push, rod_push
+from .report import Counts
+from .scan_lines import ScanOptions
+from .strategy import ExecOptions
+
+Procedure = Generator[Msg, Any, "RunSummary"]
+ACTIVITIES = ("full_scan", "local_scan", "push", "travel")
+#: A scan line starting farther than this (nm) from the tip is preceded by a travel.
+APPROACH = 300.0
+
+
+@dataclass
+class RunSummary:
+    """What a run did, for the report (the truth is the caller's, in a dry-run)."""
+
+    env: Environment                      # identified at the start
+    plan: Plan                            # first plan
+    belief: Belief
+    assignment: tuple[Assignment, ...] = ()
+    unfilled: tuple[Unfilled, ...] = ()
+    pushed: list[str] = field(default_factory=list)
+    counts: Counts = Counts()
+    times: dict[str, float] = field(default_factory=dict)
+    wall: dict[str, float] = field(default_factory=dict)
+    drift: list[tuple[float, float, float]] = field(default_factory=list)   # (t, dx, dy) estimates
+    failures: list[tuple[str, str]] = field(default_factory=list)          # (object, cause)
+    epoch: float = 0.0            # start of the run: the layout frame's time
+    origin: tuple[float, float] = (0.0, 0.0)   # layout origin in the scanner frame at the epoch
+
+
+class Assembly:
+    """State and steps of one unattended assembly run (see the module docstring)."""
+
+    def __init__(self, layout: Layout, options: ExecOptions | None = None,
+                 plan_options: PlanOptions | None = None, *, lever: Cantilever = SEED_LEVER):
+        self.layout = layout
+        self.options = options or ExecOptions()
+        self.plan_options = plan_options or PlanOptions()
+        self.strategy = self.options.strategy
+        self.lever = lever
+        self.replanner = Replanner(layout, self.plan_options)
+        self.counts = {"pushes": 0, "local_scans": 0, "replans": 0, "failed_pushes": 0}
+        self.times = dict.fromkeys(ACTIVITIES, 0.0)
+        self.wall = {"identify": 0.0, "plan": 0.0, "execute": 0.0}
+        self.pushed: list[str] = []
+        self.failures: list[tuple[str, str]] = []
+        self.drift_log: list[tuple[float, float, float]] = []
+        self.filter: DriftFilter | None = None
+        self.anchor: tuple[str, tuple[float, float]] | None = None
+        self.anchor_offset = np.zeros(2)
+        self.config = None
+        self.scan_opts = ScanOptions()
+        self.raw: set[str] = set()
+        self.move_log: list[tuple[float, np.ndarray]] = []
+        self.epoch = 0.0
+        self.origin = np.zeros(2)
+
+    # -- the drift estimate ---------------------------------------------------------
+    def offset(self, t: float) -> np.ndarray:
+        """Scanner position of the layout's origin at ``t``: where the run scanned first
+        plus the drift estimate of the strategy."""
+        if self.filter is not None:
+            return self.origin + np.asarray(self.filter.offset(t).offset, float)
+        return self.origin + self.anchor_offset
+
+    def offset_velocity(self) -> np.ndarray:
+        return np.asarray(self.filter.x[2:], float) if self.filter is not None else np.zeros(2)
+
+    def position(self, obj_id: str) -> np.ndarray:
+        """Believed layout position; an object seen only in the first full scan is moved by
+        the drift during that scan (row by row), as far as the drift velocity is known."""
+        at = np.asarray(self.belief[obj_id].at, float)
+        if obj_id in self.raw and self.filter is not None:
+            tau = self.belief.seen[obj_id].t - self.epoch
+            at = at - self.offset_velocity() * tau - self.filter.creep.offset(tau)
+        return at
+
+    def r_max(self, t: float, obj_id: str | None = None) -> float:
+        """Largest expected error of a believed position at ``t``, nm: from the drift
+        filter's covariance, or (no filter) ``r_max`` plus the drift that can have built up
+        at ``max_drift_rate`` since the object was last seen."""
+        o = self.options
+        if self.filter is not None:
+            cov = np.asarray(self.filter.offset(t).cov, float)
+            seen = self.belief.seen.get(obj_id) if obj_id is not None else None
+            if seen is not None:
+                cov = cov + seen.cov
+                if obj_id in self.raw:     # skew of the full scan, with an uncertain velocity
+                    cov = cov + self.filter.P[2:, 2:] * (seen.t - self.epoch) ** 2
+            r = 3.0 * math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0))
+        else:
+            since = t - self.belief.seen[obj_id].t if obj_id in self.belief.seen else 0.0
+            r = o.r_max + o.max_drift_rate * max(since, 0.0)
+        return o.line_factor * max(r, o.r_max_floor)
+
+    # -- building blocks (generators) -----------------------------------------------
+    def _clock(self):
+        return (yield Msg("clock"))
+
+    def _scan(self, pattern):
+        """Run a local-scan pattern through scan_line messages; returns its result."""
+        t0 = yield Msg("clock")
+        travel0 = self.times["travel"]
+        self.counts["local_scans"] += 1
+        try:
+            line = next(pattern)
+            while True:
+                profile = yield from self._scan_line(np.asarray(line.a, float), np.asarray(line.b, float),
+                                                     int(line.n))
+                line = pattern.send(profile)
+        except StopIteration as stop:
+            result = stop.value
+        t1 = yield Msg("clock")
+        # the travels to the lines are counted as travel, not twice
+        self.times["local_scan"] += t1 - t0 - (self.times["travel"] - travel0)
+        return result
+
+    def _scan_line(self, a: np.ndarray, b: np.ndarray, n: int):
+        """A scan line, cut to the scanner's range: samples beyond it read as bare
+        substrate (the median of the rest), so a pattern near the range's edge still works."""
+        yield from self._approach(a)
+        lo, hi = self.config.lower[:2], self.config.upper[:2]
+        s = np.linspace(0.0, 1.0, n)
+        pts = a[None, :] + s[:, None] * (b - a)[None, :]
+        inside = np.all((pts >= lo) & (pts <= hi), axis=1)
+        if inside.all():
+            profile = np.asarray((yield Msg("scan_line", (tuple(a), tuple(b), n))), float)
+            t = yield Msg("clock")
+            self._record(b - a, t)
+            return profile
+        idx = np.flatnonzero(inside)
+        if idx.size < 2:
+            return np.zeros(n)
+        i0, i1 = int(idx[0]), int(idx[-1])
+        part = np.asarray((yield Msg("scan_line", (tuple(pts[i0]), tuple(pts[i1]), i1 - i0 + 1))), float)
+        out = np.full(n, float(np.median(part)))
+        out[i0:i1 + 1] = part
+        return out
+
+    def _locate(self, obj_id: str):
+        """Local scan of an object where it is believed to be; widening search if missed.
+
+        Returns (measured pose in the *scanner* frame, covariance, time, scan result) or
+        None (lost). Convert with :meth:`_layout` after any drift update.
+        """
+        o = self.belief[obj_id]
+        t = yield Msg("clock")
+        off = self.offset(t)
+        r_max = self.r_max(t, obj_id)
+        at = self.position(obj_id) + off
+        if o.kind == "rod":
+            pattern = rod_before(at, o.angle, o.length, o.diameter, r_max, measure_angle=True,
+                                 options=self.scan_opts)
+        else:
+            pattern = particle_before(at, o.diameter, r_max, options=self.scan_opts)
+        res = yield from self._scan(pattern)
+        if not res.found:
+            yield Msg("event", (f"{obj_id} not found within {r_max:.0f} nm; widening search",), {"level": "warn"})
+            res = yield from self._scan(find_lost_particle(at, o.diameter, self.options.lost_radius,
+                                                           options=replace(self.scan_opts, max_lines=400)))
+            if res.found and o.kind == "rod":
+                res = yield from self._scan(rod_before(res.centre, o.angle, o.length, o.diameter,
+                                                       2 * o.diameter, measure_angle=True, options=self.scan_opts))
+            if not res.found or self._someone_else(obj_id, np.asarray(res.centre, float) - off):
+                return None
+        t = yield Msg("clock")
+        centre = np.asarray(res.centre, float)
+        angle = res.angle if o.kind == "rod" and res.angle is not None else o.angle
+        body = Body(o.id, o.kind, (float(centre[0]), float(centre[1])), o.diameter,
+                    angle if o.elongated else None, o.length if o.elongated else None)
+        cov = res.cov if res.cov is not None else np.eye(2) * 4.0
+        return body, np.asarray(cov, float), t, res
+
+    def _layout(self, scanner: Body, t: float) -> Body:
+        """A measured pose (scanner frame) in the layout frame, by the present estimate."""
+        at = np.asarray(scanner.at) - self.offset(t)
+        return replace(scanner, at=(float(at[0]), float(at[1])))
+
+    def _someone_else(self, obj_id: str, at: np.ndarray) -> bool:
+        """Whether a wide search hit another known object rather than ``obj_id``."""
+        mine = math.dist(at, self.position(obj_id))
+        d = self.belief[obj_id].diameter
+        return any(math.dist(at, self.position(oid)) < min(mine, d)
+                   for oid in self.belief.objects if oid != obj_id and oid not in self.belief.lost)
+
+    def _drift_measurement(self, obj_id: str, measured: Body, cov: np.ndarray, t: float) -> bool:
+        """Fold an untouched object's measured position (scanner frame) into the drift
+        filter; False if gated out (the object moved on its own)."""
+        if self.filter is None or obj_id in self.belief.touched:
+            return True
+        seen = self.belief.seen[obj_id]
+        z = np.asarray(measured.at) - self.origin - self.position(obj_id)
+        R = cov + seen.cov
+        if obj_id in self.raw:       # the full scan's skew is corrected with an uncertain velocity
+            R = R + self.filter.P[2:, 2:] * (seen.t - self.epoch) ** 2
+        m = self.filter.measure(t, z, R, label=obj_id)
+        self._log_drift(t)
+        return bool(m.accepted)
+
+    def _observe(self, obj_id: str, at, t: float, cov, *, angle=None) -> None:
+        self.belief.observe(obj_id, at, t, cov, angle=angle)
+        self.raw.discard(obj_id)
+
+    def _log_drift(self, t: float) -> None:
+        off = self.offset(t)
+        self.drift_log.append((t, float(off[0]), float(off[1])))
+
+    def _reference(self, near: tuple[float, float]):
+        """Measure drift on an untouched object (kalman/full) or the anchor (anchor)."""
+        t = yield Msg("clock")
+        if self.strategy.anchored and self.anchor is not None:
+            aid, home = self.anchor
+            found = yield from self._locate(aid)
+            if found is not None:
+                body, cov, t, _ = found
+                self.anchor_offset = np.asarray(body.at) - self.origin - np.asarray(home)
+                self._log_drift(t)
+            return
+        if self.filter is None:
+            return
+        if self.filter.measurements and t - self.filter.time < self.options.reference_every:
+            return
+        candidates = [o for oid, o in self.belief.objects.items()
+                      if oid not in self.belief.touched and oid not in self.belief.lost
+                      and oid not in self.moving and o.kind == "particle" and not o.edge]
+        if not candidates:
+            return
+        ref = min(candidates, key=lambda o: (math.dist(o.at, near), o.id))
+        found = yield from self._locate(ref.id)
+        if found is None:
+            self.belief.lose(ref.id)
+            return
+        body, cov, t, _ = found
+        if not self._drift_measurement(ref.id, body, cov, t):
+            yield Msg("event", (f"{ref.id} moved on its own (gated out of the drift estimate)",),
+                      {"level": "warn"})
+        self._observe(ref.id, self._layout(body, t).at, t, cov)
+
+    # -- one push -------------------------------------------------------------------
+    def _stream(self, op: Operation):
+        """Travel to the push, lower, push, lift; watching the signals. Returns the verdict."""
+        cfg = self.config
+        current = yield Msg("position")
+        t0 = yield Msg("clock")
+        drift = LinearDrift(tuple(self.offset(t0)), tuple(self.offset_velocity()), t0)
+        moves = operation(op.tip_path, push_speed=self.options.push_speed)
+        dac = plan_dac(moves, cfg, current, t0=t0, drift=drift, lever=self.lever)
+        monitor = PushMonitor(cfg.preload, lever=self.lever, force_limit=self.options.force_limit)
+        verdict = None
+        n_push = n_other = 0
+        travel_end = None
+        for chunk in dac.chunks(self.options.chunk):
+            block = yield Msg("write", (chunk.codes,))
+            pushing_now = chunk.kind == 2
+            if pushing_now.any():        # travel, lowering and push make one move for creep
+                k = int(np.flatnonzero(pushing_now)[-1])
+                travel_end = (chunk.codes[k], float(block.t[k]))
+            lifted = chunk.kind == 0                                   # travel: free air
+            if lifted.any() and not monitor.in_contact:
+                monitor.set_baseline(block.s_n[lifted], block.s_l[lifted])
+            pushing = chunk.kind == 2
+            n_push += int(pushing.sum())
+            n_other += int((~pushing).sum())
+            if pushing.any():
+                v = monitor.check(block.s_n[pushing], block.s_l[pushing])
+                if v.failed:
+                    verdict = v
+                    break
+        if travel_end is not None:
+            self._moved(current, *travel_end)
+        if verdict is None:
+            verdict = monitor.finish()
+        if verdict.failed:
+            yield from self._lift()
+        rate = cfg.sample_rate
+        self.times["push"] += n_push / rate
+        self.times["travel"] += n_other / rate
+        return verdict
+
+    def _travel_to(self, xy):
+        """Lifted travel to ``xy`` (scanner frame nm) within the slew limit."""
+        from nanoasm.world.instrument import ramp
+
+        cfg = self.config
+        here = yield Msg("position")
+        there = cfg.nm_to_codes(np.array([xy[0], xy[1], cfg.lift]))
+        path = ramp(here, there, cfg)
+        if len(path):
+            block = yield Msg("write", (path,))
+            self.times["travel"] += len(block) / cfg.sample_rate
+            self._moved(here, there, float(block.t[-1]))
+
+    def _approach(self, xy):
+        """Travel (lifted, recorded for creep) to a scan line that starts far from the tip,
+        so the scan itself is a small move."""
+        here = yield Msg("position")
+        there = self.config.codes_to_nm(np.asarray(here))[:2]
+        if math.dist(there, xy) > APPROACH:
+            lo, hi = self.config.lower[:2], self.config.upper[:2]
+            yield from self._travel_to(np.clip(np.asarray(xy, float), lo, hi))
+
+    def _moved(self, start_codes, end_codes, t: float) -> None:
+        """Tell the drift filter about a scanner move finished at ``t`` (creep follows it)."""
+        a = self.config.codes_to_nm(np.asarray(start_codes))[:2]
+        b = self.config.codes_to_nm(np.asarray(end_codes))[:2]
+        self._record(b - a, t)
+
+    def _record(self, step, t: float) -> None:
+        if self.filter is None:
+            return
+        t = max(t, self.filter.time)
+        step = np.asarray(step, float)
+        self.move_log.append((t, step))
+        self.filter.record_move(t, step)
+
+    def _bootstrap(self):
+        """The drift velocity from the full scan's own distortion.
+
+        A full scan takes minutes: an object on row ``i`` was imaged at ``τ_i`` and the
+        identified position carries the drift ``o(τ_i)``. Scanning a few objects again
+        from bottom to top rows gives ``z_i = o(t_i) − o(τ_i) = v (t_i − τ_i)``: the velocity
+        by least squares, which starts the drift filter (and corrects every other object
+        of the first scan for its row's drift).
+        """
+        cands = sorted((o for o in self.belief.objects.values() if o.kind == "particle" and not o.edge),
+                       key=lambda o: self.belief.seen[o.id].t)
+        if len(cands) < 2:
+            return
+        k = min(4, len(cands))
+        picks = [cands[round(j * (len(cands) - 1) / (k - 1))] for j in range(k)]
+        # latest rows first: their drift since is the smallest, so their lines are short,
+        # and every one sharpens the velocity that sizes the next one's lines
+        picks.sort(key=lambda o: -self.belief.seen[o.id].t)
+        rows = []
+        params = self.filter.params
+        for o in picks:
+            found = yield from self._locate(o.id)
+            if found is None:
+                continue
+            body, cov, t, _ = found
+            # o(t) - o(τ) less the creep the moves made so far are modelled to cause
+            z = np.asarray(body.at) - self.origin - np.asarray(o.at) - self.filter.creep.offset(t - self.epoch)
+            rows.append((o.id, body, cov, t, z, t - self.belief.seen[o.id].t))
+            dts = np.array([r[5] for r in rows])
+            zs = np.array([r[4] for r in rows])
+            v = (zs * dts[:, None]).sum(axis=0) / float((dts ** 2).sum())
+            resid = zs - dts[:, None] * v[None, :]
+            var = (float(np.mean(resid ** 2)) if len(rows) > 2 else 25.0) + 4.0
+            var_v = var / float((dts ** 2).sum())
+            self.filter = DriftFilter(params, epoch=self.epoch, x0=np.array([0.0, 0.0, v[0], v[1]]),
+                                      P0=np.diag([4.0, 4.0, var_v, var_v]))
+            for t_move, step in self.move_log:
+                self.filter.record_move(t_move, step)
+        if not rows:
+            return
+        for oid, body, cov, t, _, _ in rows:
+            self._observe(oid, self._layout(body, t).at, t, cov)
+        v = self.filter.x[2:]
+        yield Msg("event", (f"drift from the full scan's skew: {v[0]:+.3f}, {v[1]:+.3f} nm/s "
+                            f"(+/- {math.sqrt(self.filter.P[2, 2]):.3f}) from {len(rows)} objects",))
+        self._log_drift(rows[-1][3])
+
+    def _lift(self):
+        """Stop a push: lift the tip straight up within the slew limit."""
+        from nanoasm.world.instrument import ramp
+
+        cfg = self.config
+        here = yield Msg("position")
+        up = np.asarray(here).copy()
+        up[2] = cfg.nm_to_codes(np.array([0.0, 0.0, cfg.lift]))[2]
+        path = ramp(here, up, cfg)
+        if len(path):
+            block = yield Msg("write", (path,))
+            self.times["travel"] += len(block) / cfg.sample_rate
+
+    def _after(self, op: Operation, start: Body):
+        """Local scan after a push: where did the object go? (layout pose, cov, t) or None."""
+        o = self.belief[op.object]
+        t = yield Msg("clock")
+        off = self.offset(t)
+        r_max = self.r_max(t, op.object) + 0.1 * math.dist(start.at, op.expect.at)
+        a = np.asarray(op.tip_path[0])
+        b = np.asarray(op.tip_path[-1])
+        delta = float(np.linalg.norm(b - a))
+        u = (b - a) / delta if delta > 0 else np.array([1.0, 0.0])
+        if o.kind == "rod":
+            pattern = rod_after(np.asarray(start.at) + off, start.angle, o.length, o.diameter,
+                                b - u * delta / 2 + off, u, delta, r_max,
+                                predicted=np.asarray(op.expect.at) + off,
+                                predicted_angle=op.expect.angle, options=self.scan_opts)
+        else:
+            move = np.asarray(op.expect.at) - np.asarray(start.at)
+            length = float(np.linalg.norm(move))
+            direction = move / length if length > 0 else u
+            pattern = particle_after(np.asarray(start.at) + off, o.diameter, direction, length, r_max,
+                                     options=self.scan_opts)
+        res = yield from self._scan(pattern)
+        if not res.found:
+            return None
+        t = yield Msg("clock")
+        centre = np.asarray(res.centre, float) - self.offset(t)
+        angle = res.angle if o.kind == "rod" and res.angle is not None else o.angle
+        body = Body(o.id, o.kind, (float(centre[0]), float(centre[1])), o.diameter,
+                    angle if o.elongated else None, o.length if o.elongated else None)
+        return body, np.asarray(res.cov if res.cov is not None else np.eye(2) * 4.0), t
+
+    def push(self, op: Operation):
+        """One push with its scans; returns "ok", "failed" or "lost"."""
+        opts = self.options
+        obj_id = op.object
+        start = self.belief[obj_id]
+        if self.strategy.scans:
+            yield from self._reference(start.at)
+            found = yield from self._locate(obj_id)
+            if found is None:
+                self.belief.lose(obj_id)
+                self.failures.append((obj_id, "lost"))
+                yield Msg("event", (f"{obj_id} lost: not found within {opts.lost_radius:.0f} nm",),
+                          {"level": "error"})
+                return "lost"
+            measured, cov, t, _ = found
+            if not self._drift_measurement(obj_id, measured, cov, t):
+                yield Msg("event", (f"{obj_id} moved on its own",), {"level": "warn"})
+            measured = self._layout(measured, t)       # with the drift as now estimated
+            self._observe(obj_id, measured.at, t, cov, angle=measured.angle)
+            start = self.belief[obj_id]
+            if start.kind == "rod":
+                at, angle = self._plan_start.get(op.id, (start.at, start.angle))
+                expected = Body(obj_id, "rod", at, start.diameter, angle, start.length)
+                op = rod_push(op, expected, start)
+            else:
+                op = particle_push(op, start.at, start.radius, self.plan_options.tip_radius,
+                                   self.plan_options.lead)
+                if op is None:
+                    return "ok"
+        verdict = yield from self._stream(op)
+        self.counts["pushes"] += 1
+        if obj_id not in self.pushed:
+            self.pushed.append(obj_id)
+        self.belief.expect(obj_id, op.expect.at, op.expect.angle)
+        if verdict.failed:
+            self.counts["failed_pushes"] += 1
+            self.failures.append((obj_id, verdict.status))
+            yield Msg("event", (f"push of {obj_id} {verdict.status} (peak force {verdict.peak_force:.0f} nN)",),
+                      {"level": "warn"})
+        if self.strategy.scans:
+            after = yield from self._after(op, start)
+            if after is None:
+                located = yield from self._locate(obj_id)
+                if located is None:
+                    self.belief.lose(obj_id)
+                    self.failures.append((obj_id, "lost"))
+                    return "lost"
+                scanner, cov, t = located[:3]
+                after = (self._layout(scanner, t), cov, t)
+            body, cov, t = after
+            self._observe(obj_id, body.at, t, cov, angle=body.angle)
+        t_end = yield Msg("clock")
+        yield Msg("emit", ("push", {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,
+                                    "offset": [float(v) for v in self.offset(t_end)],
+                                    "before": [float(v) for v in start.at],
+                                    "peak_force": verdict.peak_force,
+                                    "belief": self.belief[obj_id].to_dict()}))
+        return "failed" if verdict.failed else "ok"
+
+    # -- the run --------------------------------------------------------------------
+    def procedure(self, config) -> Procedure:
+        """The whole run as a generator of messages (``config``: the instrument's)."""
+        self.config = config
+        t_wall = time.perf_counter()
+        region_side = max(self.layout.area)
+        pixels = int(math.ceil(region_side / self.options.pixel_size))
+        # the working area is scanned centred in the scanner's range; its lower-left corner
+        # is the layout frame's origin
+        self.origin = origin = 0.5 * (np.asarray(config.xy_range, float) - region_side)
+        # the layout frame is the scanner frame at the start: drift is measured from here
+        self.epoch = epoch = yield Msg("clock")
+        if self.strategy.kalman:
+            o = self.options
+            self.filter = DriftFilter(DriftFilterParams(q=o.drift_q, q_offset=o.drift_q_offset,
+                                                        offset_std=1.0), epoch=epoch)
+        yield from self._travel_to(origin + region_side / 2)
+        t0 = yield Msg("clock")
+        yield Msg("event", (f"full scan {pixels} x {pixels} px of {region_side:g} nm",))
+        region = (float(origin[0]), float(origin[1]), float(origin[0] + region_side),
+                  float(origin[1] + region_side))
+        image = yield Msg("full_scan", (pixels, region))
+        image = replace(image, origin=(image.origin[0] - origin[0], image.origin[1] - origin[1]))
+        t1 = yield Msg("clock")
+        self.times["full_scan"] += t1 - t0
+        w0 = time.perf_counter()
+        env = identify(image, tip_radius=self.plan_options.tip_radius)
+        env = Environment(self.layout.area, env.objects, env.obstacles, env.source)
+        self.wall["identify"] = time.perf_counter() - w0
+        yield Msg("emit", ("environment", env.to_dict()))
+        self.belief = Belief(env, epoch)
+        # rows are acquired bottom to top, one every line time: when each object was seen
+        line_time = (t1 - t0) / pixels
+        for o in env.objects:
+            row = min(max(o.at[1] / (region_side / pixels), 0.0), pixels - 1.0)
+            self.belief.seen[o.id].t = t0 + (row + 0.5) * line_time
+        self.raw = {o.id for o in env.objects}
+        w0 = time.perf_counter()
+        plan = self.replanner.start(env)
+        self.wall["plan"] += time.perf_counter() - w0
+        first_plan = plan
+        yield Msg("emit", ("plan", plan.to_dict()))
+        yield Msg("event", (f"plan: {len(plan.assignment)} slot(s) assigned, {len(plan.operations)} push(es)",))
+        if self.strategy.anchored:
+            self._choose_anchor(plan)
+        if self.filter is not None:
+            yield from self._bootstrap()
+        ops = list(plan.operations)
+        self.moving = {op.object for op in ops}
+        self._plan_start = self._starts(env, ops)
+        corrections: dict[str, int] = {}
+        done = 0
+        i = 0
+        while i < len(ops):
+            op = ops[i]
+            if op.object in self.belief.lost:
+                i += 1
+                continue
+            outcome = yield from self.push(op)
+            i += 1
+            done += 1
+            if self.strategy.scans:
+                lost = outcome == "lost"
+                off = math.inf if lost else math.dist(self.belief[op.object].at, op.expect.at)
+                if lost or (self.strategy.replans and (outcome == "failed" or off > self.options.replan_after)):
+                    w0 = time.perf_counter()
+                    rest = self.replanner.remainder(self.belief.environment(), done, force=True)
+                    self.wall["plan"] += time.perf_counter() - w0
+                    self.counts["replans"] += 1
+                    ops, i, done = list(rest.plan.operations), 0, 0
+                    self._plan_start = self._starts(self.belief.environment(), ops)
+                    self.moving = {o.object for o in ops}
+                    yield Msg("event", (f"replanned after {op.object} {outcome} "
+                                        f"({'lost' if lost else f'{off:.0f} nm off course'}): "
+                                        f"{len(ops)} push(es) remain",))
+                elif op.target is not None and all(o.object != op.object for o in ops[i:]):
+                    extra = self._correction(op, corrections)
+                    if extra:
+                        ops[i:i] = extra
+                        self._plan_start.update(self._starts(self.belief.environment(), extra))
+            yield Msg("checkpoint", (self._checkpoint(ops, i),))
+        self.wall["execute"] = time.perf_counter() - t_wall - self.wall["identify"] - self.wall["plan"]
+        return self._summary(env, first_plan)
+
+    def _starts(self, env: Environment, ops: list[Operation]) -> dict[int, tuple]:
+        """Pose ``(at, angle)`` the plan expects each operation's object to start from."""
+        pose = {o.id: (o.at, o.angle) for o in env.objects}
+        out = {}
+        for op in ops:
+            out[op.id] = pose.get(op.object, (op.expect.at, op.expect.angle))
+            pose[op.object] = (op.expect.at, op.expect.angle)
+        return out
+
+    def _correction(self, op: Operation, used: dict[str, int]) -> list[Operation]:
+        """Pushes that bring an object that missed its slot back in (single-object plan)."""
+        target = self.layout.target(op.target)
+        o = self.belief[op.object]
+        if in_slot(target, o, _tight(self.layout)) or used.get(o.id, 0) >= self.options.max_corrections:
+            return []
+        used[o.id] = used.get(o.id, 0) + 1
+        solo = replace(self.layout, targets=(target,))
+        # the other objects are only in the way here: no confidence, never assigned
+        others = tuple(replace(b, confidence=0.0) for oid, b in self.belief.objects.items()
+                       if oid != o.id and oid not in self.belief.lost)
+        env = Environment(self.belief.area, (o, *others), self.belief.obstacles)
+        from nanoasm.planner import plan_assembly
+
+        plan, _ = plan_assembly(solo, env, self.plan_options)
+        self.counts["replans"] += 1
+        base = 10_000 * (used[o.id] + 1) + op.id * 10
+        return [replace(p, id=base + k) for k, p in enumerate(plan.operations) if p.object == o.id]
+
+    def _choose_anchor(self, plan: Plan) -> None:
+        """The anchor: a particle no operation moves, far from the action."""
+        moving = {op.object for op in plan.operations}
+        cands = [o for o in self.belief.objects.values()
+                 if o.id not in moving and o.kind == "particle" and not o.edge]
+        if not cands:
+            return
+        cx, cy = self.layout.area[0] / 2, self.layout.area[1] / 2
+        best = min(cands, key=lambda o: (math.dist(o.at, (cx, cy)), o.id))
+        self.anchor = (best.id, best.at)
+
+    def _checkpoint(self, ops: list[Operation], i: int) -> dict:
+        return {"remaining": [o.to_dict() for o in ops[i:]], "belief": self.belief.to_dict(),
+                "counts": dict(self.counts), "times": dict(self.times), "pushed": list(self.pushed),
+                "drift": self.drift_log[-1] if self.drift_log else None}
+
+    def _summary(self, env: Environment, first_plan: Plan) -> RunSummary:
+        plan = self.replanner.plan or first_plan
+        lost = self.belief.lost
+        assignment, unfilled = [], list(plan.unfilled)
+        for a in plan.assignment:
+            if a.object in lost:
+                unfilled.append(Unfilled(a.target, f"object {a.object!r} was lost during the run"))
+            else:
+                assignment.append(a)
+        return RunSummary(env, first_plan, self.belief, tuple(assignment), tuple(unfilled), self.pushed,
+                          Counts(**self.counts), dict(self.times), dict(self.wall), self.drift_log,
+                          self.failures, self.epoch, (float(self.origin[0]), float(self.origin[1])))
+
+
+def _tight(layout: Layout):
+    """Half the layout's tolerance: correct what would be borderline."""
+    t = layout.tolerance
+    return replace(t, position=t.position * 0.6, angle=t.angle * 0.6)

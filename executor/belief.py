@@ -1,0 +1,63 @@
+"""What the executor believes about the sample: poses in the layout frame, and when and how
+well each object was last seen."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from nanoasm.world.environment import EnvObject, Environment
+
+
+@dataclass
+class Seen:
+    """Last sighting of an object: time (s), and the covariance (nm²) of its belief."""
+
+    t: float
+    cov: np.ndarray
+
+
+class Belief:
+    """Poses of the objects (layout frame), their last sightings, and which are lost.
+
+    ``touched`` holds objects pushed (on purpose) since they were last seen: their
+    position is known only through the push model until the next scan.
+    """
+
+    def __init__(self, env: Environment, t0: float, cov0: float = 4.0):
+        self.area = env.area
+        self.obstacles = env.obstacles
+        self.objects: dict[str, EnvObject] = {o.id: o for o in env.objects}
+        self.seen: dict[str, Seen] = {o.id: Seen(t0, np.eye(2) * cov0) for o in env.objects}
+        self.touched: set[str] = set()
+        self.lost: set[str] = set()
+
+    def __getitem__(self, object_id: str) -> EnvObject:
+        return self.objects[object_id]
+
+    def observe(self, object_id: str, at, t: float, cov: np.ndarray, *, angle: float | None = None) -> None:
+        o = self.objects[object_id]
+        new_angle = o.angle if angle is None or not o.elongated else float(angle)
+        self.objects[object_id] = replace(o, at=(float(at[0]), float(at[1])), angle=new_angle)
+        self.seen[object_id] = Seen(t, np.asarray(cov, float))
+        self.touched.discard(object_id)
+
+    def expect(self, object_id: str, at, angle: float | None) -> None:
+        """The object was pushed: its pose is now the push model's prediction."""
+        o = self.objects[object_id]
+        new_angle = o.angle if angle is None or not o.elongated else float(angle)
+        self.objects[object_id] = replace(o, at=(float(at[0]), float(at[1])), angle=new_angle)
+        self.touched.add(object_id)
+
+    def lose(self, object_id: str) -> None:
+        self.lost.add(object_id)
+
+    def environment(self) -> Environment:
+        """The belief as an environment for the planner (lost objects left out)."""
+        objs = tuple(o for oid, o in self.objects.items() if oid not in self.lost)
+        return Environment(self.area, objs, self.obstacles, "belief")
+
+    def to_dict(self) -> dict:
+        return {"objects": [o.to_dict() for o in self.objects.values()],
+                "lost": sorted(self.lost), "touched": sorted(self.touched)}

@@ -1,0 +1,105 @@
+"""Contact monitoring during a push, from the photodiode signals (seed 3.5, Fig. 3.20).
+
+Signals are compensated as eq. 3.28 with baselines measured in free air just before the
+push (the substrate-reflection and piezo-bow baselines at the push's place) and the
+normal-to-lateral cross-talk α: ``S̄n = S_n − S_n0``, ``S̄l = S_l − S_l0 − α S̄n``.
+Forces follow eq. 3.11: ``F_n = k K_n S̄n`` and the lateral force ``(k_l K_l / h) S̄l``.
+
+* contact: S̄n reaches half the preload's deflection;
+* slip-over: after contact, S̄n collapses below ``slip_fraction`` of the contact level
+  for a few samples (the tip went over the object, Fig. 3.20);
+* stuck: the lateral force stays beyond ``force_limit`` (the object does not move).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from nanoasm.world.cantilever import SEED_LEVER, Cantilever
+
+#: Consecutive samples a condition must hold to count (rejects single-sample noise).
+HOLD = 3
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """``status``: "pushing" (all well so far), "slipped", "stuck" or "no_contact";
+    ``index``: first sample of the failure within the block; ``peak_force`` nN."""
+
+    status: str
+    index: int | None = None
+    peak_force: float = 0.0
+
+    @property
+    def failed(self) -> bool:
+        return self.status in ("slipped", "stuck", "no_contact")
+
+
+def _run_start(mask: np.ndarray, hold: int = HOLD) -> int | None:
+    """First index where ``mask`` holds for ``hold`` consecutive samples."""
+    if mask.size < hold:
+        return None
+    run = np.convolve(mask.astype(int), np.ones(hold, int), mode="valid")
+    hits = np.flatnonzero(run == hold)
+    return int(hits[0]) if hits.size else None
+
+
+class PushMonitor:
+    """Watches the signals of one push, block by block."""
+
+    def __init__(self, preload: float, *, lever: Cantilever = SEED_LEVER, force_limit: float = 300.0,
+                 slip_fraction: float = 0.4):
+        self.lever = lever
+        self.level = preload / lever.normal_gain          # S̄n in contact at the preload, V
+        self.force_limit = force_limit
+        self.slip_fraction = slip_fraction
+        self.s_n0 = 0.0
+        self.s_l0 = 0.0
+        self.in_contact = False
+        self.peak = 0.0
+        self.contact_samples = 0
+
+    def set_baseline(self, s_n: np.ndarray, s_l: np.ndarray) -> None:
+        """Free-air baseline from samples with the tip lifted (eq. 3.28's A and B here)."""
+        if len(s_n):
+            self.s_n0 = float(np.median(s_n))
+            self.s_l0 = float(np.median(s_l))
+
+    def compensated(self, s_n: np.ndarray, s_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        sn = np.asarray(s_n, float) - self.s_n0
+        sl = np.asarray(s_l, float) - self.s_l0 - self.lever.crosstalk * sn
+        return sn, sl
+
+    def forces(self, s_n, s_l) -> tuple[np.ndarray, np.ndarray]:
+        """Normal and lateral force, nN (eq. 3.11 with the compensated signals)."""
+        sn, sl = self.compensated(s_n, s_l)
+        return self.lever.spring_constant * self.lever.normal_gain * sn, self.lever.lateral_gain * sl
+
+    def check(self, s_n: np.ndarray, s_l: np.ndarray) -> Verdict:
+        """Verdict on the push samples of one block (in order)."""
+        sn, _ = self.compensated(s_n, s_l)
+        _, f_l = self.forces(s_n, s_l)
+        if f_l.size:
+            self.peak = max(self.peak, float(np.max(np.abs(f_l))))
+        start = 0
+        if not self.in_contact:
+            touch = _run_start(sn >= 0.5 * self.level)
+            if touch is None:
+                self.contact_samples = 0
+                return Verdict("pushing", None, self.peak)
+            self.in_contact = True
+            start = touch
+        self.contact_samples += sn.size - start
+        slip = _run_start(sn[start:] < self.slip_fraction * self.level)
+        stuck = _run_start(np.abs(f_l[start:]) > self.force_limit)
+        firsts = [(i, s) for i, s in ((slip, "slipped"), (stuck, "stuck")) if i is not None]
+        if firsts:
+            i, status = min(firsts)
+            return Verdict(status, start + i, self.peak)
+        return Verdict("pushing", None, self.peak)
+
+    def finish(self) -> Verdict:
+        """After the last block: a push that never touched down is a failure too."""
+        return Verdict("pushing" if self.in_contact else "no_contact", None, self.peak)
