@@ -371,6 +371,52 @@ def dry_run_cmd(
         print(f"{report}: written")
 
 
+@app.command("run")
+def run_cmd(
+    layout_file: Annotated[Path, typer.Argument(metavar="LAYOUT", help="Layout (TOML/JSON).")],
+    instrument: Annotated[Path, typer.Option(help="Instrument file (nanoasm.instrument/1).")],
+    strategy: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full or anchor.")] = "full",
+    report: Annotated[Optional[Path], typer.Option(help="Write the report (JSON) here.")] = None,
+) -> None:
+    """Assemble LAYOUT unattended on the instrument described by --instrument (NI-DAQmx)."""
+    from nanoasm.cad.layout import load_layout
+    from nanoasm.executor.assembly import Assembly
+    from nanoasm.executor.engine import RunEngine
+    from nanoasm.executor.instrument_file import load_instrument_config
+    from nanoasm.executor.nidaq import NiDaqInstrument
+    from nanoasm.executor.report import InstrumentTime, Report, WallTime
+    from nanoasm.executor.strategy import STRATEGIES, ExecOptions
+
+    if strategy not in STRATEGIES:
+        raise InputError(None, "--strategy", f"unknown strategy {strategy!r}; one of {', '.join(STRATEGIES)}")
+    if report is not None and report.suffix.lower() != ".json":
+        raise InputError(str(report), None, "report must end in .json")
+    layout = load_layout(layout_file)
+    config = load_instrument_config(instrument)
+    assembly = Assembly(layout, ExecOptions(strategy=strategy))
+    with NiDaqInstrument(config) as inst:
+        t0 = inst.clock()
+        summary = _with_run_progress(lambda subs: RunEngine(inst, subs).run(assembly.procedure(inst.config)))
+        total = inst.clock() - t0
+    t = summary.times
+    from nanoasm.bodies import Body
+
+    def plain(o) -> Body:
+        return Body(o.id, o.kind, o.at, o.diameter, None if o.angle is None else o.angle % 180.0, o.length)
+
+    final = tuple(plain(o) for oid, o in summary.belief.objects.items() if oid not in summary.belief.lost)
+    rep = Report(None, str(layout_file), None, layout.targets,
+                 tuple(plain(o) for o in summary.env.objects), final, summary.assignment, tuple(summary.pushed),
+                 summary.unfilled, summary.counts,
+                 InstrumentTime(t["full_scan"], t["local_scan"], t["push"], t["travel"], total),
+                 WallTime(summary.wall["identify"], summary.wall["plan"], summary.wall["execute"],
+                          sum(summary.wall.values())))
+    if report is not None:
+        rep.save(report)
+    print(f"run: {len(summary.assignment)} of {len(layout.targets)} slot(s) assigned, "
+          f"{rep.counts.pushes} push(es), {rep.counts.failed_pushes} failed; {total / 60:.1f} min")
+
+
 def _with_run_progress(work):
     """Run ``work(subscribers)`` with a progress line on a terminal."""
     from rich.console import Console

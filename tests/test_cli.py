@@ -135,3 +135,20 @@ def test_identify_a_simulated_scan(tmp_path, capsys):
                        "--cut", "-1")
     assert code == 1 and "--cut: must be positive" in one_error_line(err)
     assert not (tmp_path / "e.json").exists()
+
+
+def test_run_without_the_ni_driver_says_so_in_one_line(capsys, monkeypatch, tmp_path):
+    pytest.importorskip("nidaqmx")
+    code, _, err = run(capsys, "run", str(example("bowtie.toml")), "--instrument",
+                       str(example("instrument_ni.toml")), "--report", str(tmp_path / "r.json"))
+    assert code == 1 and "NI-DAQmx driver not found" in one_error_line(err)
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_dry_run_refuses_bad_options(capsys, tmp_path):
+    code, _, err = run(capsys, "dry-run", "--strategy", "psychic")
+    assert code == 1 and "--strategy: unknown strategy" in one_error_line(err)
+    code, _, err = run(capsys, "dry-run", str(example("bowtie_scene.toml")))
+    assert code == 1 and "give both a scene and a layout" in one_error_line(err)
+    code, _, err = run(capsys, "dry-run", "--report", str(tmp_path / "r.txt"))
+    assert code == 1 and "report must end in .json" in one_error_line(err)
