@@ -566,7 +566,10 @@ class Assembly:
             if self.strategy.scans:
                 lost = outcome == "lost"
                 off = math.inf if lost else math.dist(self.belief[op.object].at, op.expect.at)
-                if lost or (self.strategy.replans and (outcome == "failed" or off > self.options.replan_after)):
+                # a rod's pushes scatter more (pivot, path): re-aiming absorbs up to L/4
+                o = self.belief[op.object]
+                limit = max(self.options.replan_after, o.length / 4) if o.kind == "rod" else self.options.replan_after
+                if lost or (self.strategy.replans and (outcome == "failed" or off > limit)):
                     w0 = time.perf_counter()
                     rest = self.replanner.remainder(self.belief.environment(), done, force=True)
                     self.wall["plan"] += time.perf_counter() - w0
