@@ -223,5 +223,7 @@ def test_every_planner_finds_a_detour_and_returns(tmp_path):
         "    assert not plan.unfilled, name\n"
         "print('ok')\n"
     )
-    run = subprocess.run([sys.executable, "-c", code, *PLANNERS], capture_output=True, text=True, timeout=120)
+    # run outside the checkout, whose nanoasm/ folder would shadow the installed package
+    run = subprocess.run([sys.executable, "-c", code, *PLANNERS], capture_output=True, text=True,
+                         timeout=120, cwd=tmp_path)
     assert run.returncode == 0 and run.stdout.strip() == "ok", run.stderr
