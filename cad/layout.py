@@ -19,9 +19,10 @@ from nanoasm.bodies import (
     outside_area,
     overlapping_pairs,
     polygon_from_table,
+    polygon_geometry,
     polygon_overlaps,
 )
-from nanoasm.fileio import dumps_json, dumps_toml, read_document, write_atomic
+from nanoasm.fileio import Document, read_document
 from nanoasm.schema import Point, Table, check_format
 
 FORMAT = "nanoasm.layout/1"
@@ -49,15 +50,14 @@ class Keepout:
     polygon: tuple[Point, ...]
 
     def geometry(self) -> shapely.Polygon:
-        pts = self.polygon[:-1] if len(self.polygon) > 3 and self.polygon[0] == self.polygon[-1] else self.polygon
-        return shapely.Polygon(pts)
+        return polygon_geometry(self.polygon)
 
     def to_dict(self) -> dict:
         return {"polygon": [list(p) for p in self.polygon]}
 
 
 @dataclass(frozen=True)
-class Layout:
+class Layout(Document):
     area: Point
     targets: tuple[Target, ...]
     keepouts: tuple[Keepout, ...] = ()
@@ -75,16 +75,6 @@ class Layout:
             d["keepout"] = [k.to_dict() for k in self.keepouts]
         return d
 
-    def dumps_toml(self) -> str:
-        return dumps_toml(self.to_dict())
-
-    def dumps_json(self) -> str:
-        return dumps_json(self.to_dict())
-
-    def save(self, path: str | os.PathLike) -> None:
-        """Write as JSON when ``path`` ends in ``.json``, else as TOML; atomically."""
-        text = self.dumps_json() if str(path).lower().endswith(".json") else self.dumps_toml()
-        write_atomic(path, text)
 
     def target(self, target_id: str) -> Target:
         for t in self.targets:

@@ -183,3 +183,9 @@ def polygon_from_table(t: Table, name: str = "polygon") -> tuple[tuple[Point, ..
             t.fail(name, f"polygon intersects itself at ({x:g}, {y:g})")
         t.fail(name, f"invalid polygon: {reason}")
     return pts, poly
+
+
+def polygon_geometry(points) -> shapely.Polygon:
+    """A shapely polygon from vertices, with or without the first repeated at the end."""
+    pts = tuple(points)
+    return shapely.Polygon(pts[:-1] if len(pts) > 3 and pts[0] == pts[-1] else pts)

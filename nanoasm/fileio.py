@@ -229,3 +229,21 @@ def dumps_json(doc: Any, _indent: int = 0) -> str:
         items = [f"{inner}{dumps_json(v, _indent + 2)}" for v in doc]
         return "[\n" + ",\n".join(items) + f"\n{pad}]"
     return json.dumps(doc, allow_nan=False, ensure_ascii=False)
+
+
+class Document:
+    """Mixin for value types written as TOML or JSON: subclasses provide ``to_dict``."""
+
+    def to_dict(self) -> dict:  # pragma: no cover - every subclass defines it
+        raise NotImplementedError
+
+    def dumps_toml(self) -> str:
+        return dumps_toml(self.to_dict())
+
+    def dumps_json(self) -> str:
+        return dumps_json(self.to_dict())
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write as JSON when ``path`` ends in ``.json``, else as TOML; atomically."""
+        text = self.dumps_json() if str(path).lower().endswith(".json") else self.dumps_toml()
+        write_atomic(path, text)

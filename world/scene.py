@@ -21,9 +21,10 @@ from nanoasm.bodies import (
     outside_area,
     overlapping_pairs,
     polygon_from_table,
+    polygon_geometry,
     polygon_overlaps,
 )
-from nanoasm.fileio import dumps_json, dumps_toml, read_document, write_atomic
+from nanoasm.fileio import Document, read_document
 from nanoasm.schema import Point, Table, check_format
 
 from .params import TABLES, DriftParams, NoiseParams, WorldParams
@@ -40,15 +41,14 @@ class Obstacle:
     height: float
 
     def geometry(self) -> shapely.Polygon:
-        pts = self.polygon[:-1] if len(self.polygon) > 3 and self.polygon[0] == self.polygon[-1] else self.polygon
-        return shapely.Polygon(pts)
+        return polygon_geometry(self.polygon)
 
     def to_dict(self) -> dict:
         return {"polygon": [list(p) for p in self.polygon], "height": self.height}
 
 
 @dataclass(frozen=True)
-class Scene:
+class Scene(Document):
     """A simulated sample. ``drift``/``noise`` are None when the file leaves them to the world."""
 
     area: Point
@@ -75,16 +75,6 @@ class Scene:
         d.update(self.params.to_tables())
         return d
 
-    def dumps_toml(self) -> str:
-        return dumps_toml(self.to_dict())
-
-    def dumps_json(self) -> str:
-        return dumps_json(self.to_dict())
-
-    def save(self, path: str | os.PathLike) -> None:
-        """Write as JSON when ``path`` ends in ``.json``, else as TOML; atomically."""
-        text = self.dumps_json() if str(path).lower().endswith(".json") else self.dumps_toml()
-        write_atomic(path, text)
 
     def summary(self) -> str:
         n_p = sum(o.kind == "particle" for o in self.objects)
