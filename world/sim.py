@@ -221,13 +221,12 @@ class SimulatedAFM:
         self._to_tapping("local_scan")
         t = self._clock.now
         dx, dy = self._drift.offset(t)
-        here = self.config.codes_to_nm(self._last)[:2]
-        self._drift.record_move(t, *(pa - here))
+        self._moves.jump(t, pa)          # whatever moved the DAC here, then on to a
         heights = render_line(self._surface_now(), (pa[0] - dx, pa[1] - dy), (pb[0] - dx, pb[1] - dy),
                               int(n), tip=self._world.tip, noise_rms=self.params.noise.height_rms,
                               rng=self._rng_scan)
         self._clock.scan_line(int(n))
-        self._drift.record_move(self._clock.now, *(pb - pa))
+        self._moves.jump(self._clock.now, pb)
         # the DAC is left at the line's end, lifted (the next line of a pattern starts close by)
         end = self.config.nm_to_codes(np.array([pb[0], pb[1], self.config.lift]))
         self._last = end

@@ -191,6 +191,14 @@ class MoveTracker:
         self.stop = max(1, int(stop_samples))
         self.still = 0
 
+    def jump(self, t: float, xy: np.ndarray) -> None:
+        """The instrument itself took XY to ``xy`` at ``t`` (a scan line): the move from
+        where the last one ended is recorded now, and XY counts as at rest there."""
+        d = np.asarray(xy, float) - self.start
+        self.drift.record_move(float(t), float(d[0]), float(d[1]))
+        self.start = np.asarray(xy, float).copy()
+        self.still = self.stop
+
     def track(self, nm: np.ndarray, codes: np.ndarray, previous: np.ndarray, t: np.ndarray) -> None:
         """Samples ``codes`` (their nm ``nm`` and times ``t``) played after ``previous``."""
         prev = np.vstack([previous[None, :2], codes[:-1, :2]])
