@@ -237,6 +237,10 @@ class Assembly:
         return bool(m.accepted)
 
     def _observe(self, obj_id: str, at, t: float, cov, *, angle=None) -> None:
+        """Record a measured pose (layout frame); its uncertainty includes the drift
+        estimate's at ``t``, through which it was put into the layout frame."""
+        if self.filter is not None:
+            cov = np.asarray(cov, float) + np.asarray(self.filter.offset(t).cov, float)
         self.belief.observe(obj_id, at, t, cov, angle=angle)
         self.raw.discard(obj_id)
 
