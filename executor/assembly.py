@@ -36,7 +36,7 @@ from .trajectory import operation
 from .engine import Msg
 from .local_scan import particle_after, particle_before, rod_after, rod_before
 from .lost_search import find_lost_particle
-from .monitor import PushMonitor
+from .monitor import PushMonitor, Verdict
 from .reaim import particle_push, rod_push
 from .report import Counts
 from .scan_lines import ScanOptions
@@ -90,6 +90,7 @@ class Assembly:
         self.config = None
         self.scan_opts = ScanOptions()
         self.raw: set[str] = set()
+        self.preload_factor: dict[str, float] = {}
         self.move_log: list[tuple[float, np.ndarray]] = []
         self.epoch = 0.0
         self.origin = np.zeros(2)
@@ -282,7 +283,12 @@ class Assembly:
     # -- one push -------------------------------------------------------------------
     def _stream(self, op: Operation):
         """Travel to the push, lower, push, lift; watching the signals. Returns the verdict."""
+        # an object the tip slipped over before is pushed harder (seed eq. 4.7: a larger
+        # normal force keeps the tip down), up to half the Z range
         cfg = self.config
+        factor = self.preload_factor.get(op.object, 1.0)
+        if factor != 1.0:
+            cfg = replace(cfg, preload=min(cfg.preload * factor, 0.45 * cfg.z_range))
         current = yield Msg("position")
         t0 = yield Msg("clock")
         drift = LinearDrift(tuple(self.offset(t0)), tuple(self.offset_velocity()), t0)
@@ -498,6 +504,15 @@ class Assembly:
                 after = (self._layout(scanner, t), cov, t)
             body, cov, t = after
             self._observe(obj_id, body.at, t, cov, angle=body.angle)
+            planned = math.dist(start.at, op.expect.at)
+            if not verdict.failed and planned > 20.0 and math.dist(start.at, body.at) < 0.25 * planned:
+                # the signals missed it, the scans did not: the tip went over the object
+                verdict = Verdict("slipped", None, verdict.peak_force)
+                self.counts["failed_pushes"] += 1
+                self.failures.append((obj_id, "slipped"))
+                yield Msg("event", (f"push of {obj_id} left it where it was: slipped over",), {"level": "warn"})
+            if verdict.status == "slipped":
+                self.preload_factor[obj_id] = min(self.preload_factor.get(obj_id, 1.0) * 1.6, 4.0)
         t_end = yield Msg("clock")
         yield Msg("emit", ("push", {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,
                                     "offset": [float(v) for v in self.offset(t_end)],
