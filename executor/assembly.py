@@ -216,9 +216,10 @@ class Assembly:
         at = np.asarray(scanner.at) - self.offset(t)
         return replace(scanner, at=(float(at[0]), float(at[1])))
 
-    def _someone_else(self, obj_id: str, at: np.ndarray) -> bool:
-        """Whether a wide search hit another known object rather than ``obj_id``."""
-        mine = math.dist(at, self.position(obj_id))
+    def _someone_else(self, obj_id: str, at: np.ndarray, expected: np.ndarray | None = None) -> bool:
+        """Whether a scan hit another known object rather than ``obj_id`` (expected at
+        ``expected``, by default where it is believed to be)."""
+        mine = math.dist(at, self.position(obj_id) if expected is None else expected)
         d = self.belief[obj_id].diameter
         return any(math.dist(at, self.position(oid)) < min(mine, d)
                    for oid in self.belief.objects if oid != obj_id and oid not in self.belief.lost)
@@ -448,6 +449,8 @@ class Assembly:
             return None
         t = yield Msg("clock")
         centre = np.asarray(res.centre, float) - self.offset(t)
+        if self._someone_else(op.object, centre, expected=np.asarray(op.expect.at, float)):
+            return None                  # the lines found a neighbour, not the pushed object
         angle = res.angle if o.kind == "rod" and res.angle is not None else o.angle
         body = Body(o.id, o.kind, (float(centre[0]), float(centre[1])), o.diameter,
                     angle if o.elongated else None, o.length if o.elongated else None)
