@@ -90,6 +90,8 @@ class Assembly:
         self.config = None
         self.scan_opts = ScanOptions()
         self.raw: set[str] = set()
+        self.moving: set[str] = set()            # objects the current plan still moves
+        self._plan_start: dict[int, tuple] = {}  # pose each operation expects to start from
         self.preload_factor: dict[str, float] = {}
         self.move_log: list[tuple[float, np.ndarray]] = []
         self.epoch = 0.0
