@@ -294,3 +294,20 @@ def test_by_default_the_scene_sits_centred_in_the_scanner_range():
     assert (px, py) == pytest.approx(((90000 - 4000) / 2, (90000 - 4000) / 2))
     line = sim.scan_line((px + 800.0, py + 3000.0), (px + 1200.0, py + 3000.0), 401)
     assert abs(int(np.argmax(line)) - 200) <= 2           # the particle is under px + 1000
+
+
+def test_the_sim_table_reaches_the_simulator():
+    from nanoasm.world.scene import scene_from_dict
+    from nanoasm.world.sim import SimulatedAFM
+
+    scene = scene_from_dict({"format": "nanoasm.scene/1", "area": [2000, 2000],
+                             "object": [{"kind": "particle", "at": [1000, 1000], "diameter": 80}],
+                             "sim": {"capture_angle": 30, "piezo_tau": 0.01, "roughness_rms": 0.0},
+                             "faults": {"lost_min": 100, "lost_max": 200}}, "s.toml")
+    sim = SimulatedAFM(scene)
+    assert sim._world.sim.capture_angle == 30 and sim.params.sim.piezo_tau == 0.01
+    assert sim.params.faults.lost_max == 200
+    line = sim.scan_line((sim.placement[0] + 100.0, sim.placement[1] + 100.0),
+                         (sim.placement[0] + 600.0, sim.placement[1] + 100.0), 101)
+    # no roughness: only the 0.3 nm height noise is left on bare substrate
+    assert float(np.std(line)) < 0.5

@@ -7,7 +7,11 @@ import math
 
 import numpy as np
 import pytest
-from nanoasm.world.faults import LOST_DISTANCE, SLIP_AFTER, draw_push_faults
+from nanoasm.world.faults import draw_push_faults
+from nanoasm.world.params import FaultParams
+
+LOST_DISTANCE = (FaultParams().lost_min, FaultParams().lost_max)
+SLIP_AFTER = (FaultParams().slip_after_min, FaultParams().slip_after_max)
 from nanoasm.world.instrument import InstrumentConfig
 from nanoasm.world.params import FaultParams
 from simkit import EXACT, particle, push, rod, world

@@ -7,9 +7,9 @@ same seven numbers so that one fault's probability never shifts another's draws:
 - ``stuck_object``: the object does not move; the tip presses on, the lever's lateral
   force rises with the piezo's overshoot until the tip slips over it;
 - ``tip_slip``: the tip slips over the object part-way through the push, after a
-  distance drawn uniformly in ``SLIP_AFTER`` contact radii;
+  distance drawn uniformly in ``[faults] slip_after_min..slip_after_max`` contact radii;
 - ``lost_object``: the object jumps away, a distance drawn uniformly in
-  ``LOST_DISTANCE`` nm in a random direction (it leaves the working area in most scenes);
+  ``[faults] lost_min..lost_max`` nm in a random direction (it leaves the working area in most scenes);
 - ``tip_blunting``: the tip's apex radius grows by ``blunting_step`` nm (scans broaden,
   the contact radius grows).
 """
@@ -23,10 +23,6 @@ import numpy as np
 
 from .params import FaultParams
 
-#: Range of the push distance, in contact radii, after which a ``tip_slip`` fault strikes.
-SLIP_AFTER = (0.5, 4.0)
-#: Range of the jump of a lost object, nm.
-LOST_DISTANCE = (2000.0, 10000.0)
 
 
 @dataclass(frozen=True)
@@ -52,9 +48,9 @@ def draw_push_faults(faults: FaultParams, contact_radius: float, rng: np.random.
     slip = bool(u[1] < faults.tip_slip)
     lost = bool(u[2] < faults.lost_object)
     blunt = bool(u[3] < faults.tip_blunting)
-    lo, hi = SLIP_AFTER
+    lo, hi = faults.slip_after_min, faults.slip_after_max
     slip_after = (lo + (hi - lo) * u[4]) * contact_radius if slip else math.inf
-    dist = LOST_DISTANCE[0] + (LOST_DISTANCE[1] - LOST_DISTANCE[0]) * u[5]
+    dist = faults.lost_min + (faults.lost_max - faults.lost_min) * u[5]
     ang = 2.0 * math.pi * u[6]
     jump = (dist * math.cos(ang), dist * math.sin(ang)) if lost else (0.0, 0.0)
     return PushFaults(stuck, slip_after, lost, blunt, jump)

@@ -211,6 +211,50 @@ class FaultParams:
     tip_blunting: float = param(0.0, "-", "probability that the tip apex blunts", nonnegative=True,
                                 hi=1.0)
     blunting_step: float = param(5.0, "nm", "apex radius gained per blunting", nonnegative=True)
+    slip_after_min: float = param(0.5, "contact radii", "a tip_slip fault strikes after a push "
+                                  "distance drawn between slip_after_min and slip_after_max", positive=True)
+    slip_after_max: float = param(4.0, "contact radii", "see slip_after_min", positive=True)
+    lost_min: float = param(2000.0, "nm", "a lost object jumps a distance drawn between lost_min "
+                            "and lost_max, in a random direction", nonnegative=True)
+    lost_max: float = param(10000.0, "nm", "see lost_min", nonnegative=True)
+
+    def __post_init__(self) -> None:
+        validate(self)
+        if self.slip_after_max < self.slip_after_min or self.lost_max < self.lost_min:
+            raise ParamError("slip_after_max" if self.slip_after_max < self.slip_after_min else "lost_max",
+                             "must not be below its minimum")
+
+
+@dataclass(frozen=True)
+class SimParams:
+    """How the simulated instrument and sample behave beyond the seed's equations."""
+
+    roughness_rms: float = param(0.2, "nm", "substrate roughness", source="a smooth glass slide",
+                                 nonnegative=True)
+    roughness_length: float = param(50.0, "nm", "correlation length of the roughness", positive=True)
+    line_offset_prob: float = param(0.02, "-", "probability of a whole-line height offset in a full scan",
+                                    nonnegative=True, hi=1.0)
+    line_offset_rms: float = param(0.5, "nm", "rms of such a line offset", nonnegative=True)
+    piezo_tau: float = param(0.003, "s", "time constant of the piezo amplifier's low-pass between "
+                             "DAC and scanner", positive=True)
+    stop_time: float = param(0.05, "s", "XY at rest this long ends a move (creep counts moves)",
+                             positive=True)
+    capture_angle: float = param(45.0, "deg", "half-angle of the cone about the tip's motion within "
+                                 "which a particle is carried", positive=True, hi=90.0)
+    heading_length: float = param(30.0, "nm", "length of tip path over which its direction of "
+                                  "motion is taken", positive=True)
+    release: float = param(2.0, "nm", "clearance beyond contact within which a push continues",
+                           nonnegative=True)
+    bifurcation_band: float = param(0.02, "-", "half-width, as a fraction of L, of the band about a "
+                                    "rod's middle where either end can become the pivot (eq. 4.10)",
+                                    nonnegative=True, hi=0.5)
+    uncertain_gain: float = param(3.0, "-", "scatter multiplier of pivot and path for rods with "
+                                  "15 <= L/d <= 25 (seed 4.3.1: uncertain)", positive=True)
+    reflection_decay: float = param(1000.0, "nm", "height over which the substrate-reflection "
+                                    "baseline fades as the tip lifts", positive=True)
+    wire_affect_fraction: float = param(0.25, "-", "radius of a wire's bending region as a fraction "
+                                        "of its length (seed ch. 6 is empirical)", positive=True, hi=1.0)
+    wire_affect_min: float = param(4.0, "diameters", "least radius of that region", positive=True)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -220,7 +264,7 @@ _GROUPS: dict[str, type] = {
     "tip": TipParams, "cantilever": CantileverParams, "friction": FrictionParams,
     "adhesion": AdhesionParams, "push": PushParams, "vdw": VdwParams, "scanner": InstrumentConfig,
     "timing": TimingParams, "drift": DriftParams, "creep": CreepParams, "noise": NoiseParams,
-    "faults": FaultParams,
+    "faults": FaultParams, "sim": SimParams,
 }
 
 #: The scene tables whose keys :class:`WorldParams` owns, in documentation order.
@@ -243,6 +287,7 @@ class WorldParams:
     creep: CreepParams = field(default_factory=CreepParams)
     noise: NoiseParams = field(default_factory=NoiseParams)
     faults: FaultParams = field(default_factory=FaultParams)
+    sim: SimParams = field(default_factory=SimParams)
 
     def __post_init__(self) -> None:
         for name, cls in _GROUPS.items():
@@ -291,7 +336,7 @@ def params_markdown() -> str:
 
 __all__ = [
     "TABLES", "AdhesionParams", "CantileverParams", "CreepParams", "DriftParams", "FaultParams",
-    "FrictionParams", "NoiseParams", "PushParams", "TimingParams", "TipParams", "VdwParams",
+    "FrictionParams", "NoiseParams", "PushParams", "SimParams", "TimingParams", "TipParams", "VdwParams",
     "WorldParams", "params_markdown",
 ]
 

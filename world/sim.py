@@ -57,14 +57,6 @@ from .sim_push import PushPhysics
 from .sim_signals import SignalModel
 from .sim_stream import MoveTracker, TipState, play_chunk
 
-#: Substrate roughness (nm rms) and its correlation length (nm): a smooth glass slide.
-ROUGHNESS_RMS, ROUGHNESS_LENGTH = 0.2, 50.0
-#: Probability and rms (nm) of a whole-line height offset in a full scan.
-LINE_OFFSET_PROB, LINE_OFFSET_RMS = 0.02, 0.5
-#: Time constant (s) of the piezo amplifier's low-pass between the DAC and the scanner.
-PIEZO_TAU = 0.003
-#: XY at rest this long (s) ends a move; moves of at least ``[creep] min_step`` add creep.
-STOP_TIME = 0.05
 
 TAPPING, CONTACT = "tapping", "contact"
 _STREAMS = ("truth", "faults", "vdw", "drift", "surface", "scan", "signal")
@@ -125,8 +117,8 @@ class SimulatedAFM:
         table, units, groups, wires = build_objects(scene.objects, self.params, rng["truth"])
         self._world = PushPhysics(table, units, groups, wires, self.params, scene.obstacles,
                                   rng["faults"], rng["vdw"])
-        self._surface = make_surface((), scene.obstacles, scene.area, roughness_rms=ROUGHNESS_RMS,
-                                     roughness_length=ROUGHNESS_LENGTH, rng=rng["surface"])
+        self._surface = make_surface((), scene.obstacles, scene.area, roughness_rms=self.params.sim.roughness_rms,
+                                     roughness_length=self.params.sim.roughness_length, rng=rng["surface"])
         self._model = SignalModel.from_params(self.params, 0.0, scene.area[0])
         self._rng_scan, self._rng_signal = rng["scan"], rng["signal"]
         self._last = cfg.rest_codes()
@@ -134,7 +126,7 @@ class SimulatedAFM:
         self._piezo_xy = rest[:2].copy()
         self._state = TipState(rest[:2].copy(), (float(rest[0]), float(rest[1])), float(rest[2]))
         self._mode = TAPPING
-        self._moves = MoveTracker(self._drift, rest[:2], round(STOP_TIME * cfg.sample_rate))
+        self._moves = MoveTracker(self._drift, rest[:2], round(self.params.sim.stop_time * cfg.sample_rate))
         a, b = self._model.baselines(np.array([rest[0]]), np.array([rest[2]]))
         self._signals = (float(a[0]), float(b[0]))
 
@@ -205,7 +197,8 @@ class SimulatedAFM:
         timing = self.params.timing
         image = render_scan(self._surface_now(), side / int(pixels), tip=self._world.tip,
                             window=(x0, y0, side, side), noise_rms=self.params.noise.height_rms,
-                            line_offset_prob=LINE_OFFSET_PROB, line_offset_rms=LINE_OFFSET_RMS,
+                            line_offset_prob=self.params.sim.line_offset_prob,
+                            line_offset_rms=self.params.sim.line_offset_rms,
                             drift=self._sample_shift, line_time=timing.full_scan_line,
                             t0=self._clock.now, rng=self._rng_scan)
         self._clock.full_scan(int(pixels))
@@ -302,10 +295,10 @@ class SimulatedAFM:
     # -- helpers -----------------------------------------------------------------------------------
     def _smooth(self, xy: np.ndarray) -> np.ndarray:
         """The piezo follows the DAC through its amplifier's first-order low-pass
-        (``PIEZO_TAU``): the single-axis code steps of a diagonal path blur into the line."""
+        (``[sim] piezo_tau``): the single-axis code steps of a diagonal path blur into the line."""
         from scipy.signal import lfilter
 
-        a = 1.0 - math.exp(-1.0 / (PIEZO_TAU * self.config.sample_rate))
+        a = 1.0 - math.exp(-1.0 / (self.params.sim.piezo_tau * self.config.sample_rate))
         if self._piezo_xy is None:
             self._piezo_xy = xy[0].copy()
         out = np.empty_like(xy)

@@ -5,7 +5,7 @@ seeded generator, its own object–substrate friction μos and shear coefficient
 (relative spread ``[friction] scatter``), its own adhesion (``[adhesion] scatter``), a
 pivot offset along its axis (``[push] pivot_scatter`` of its length, rods) and a
 direction error of its motion (``[push] path_scatter``, particles). Objects with
-15 ≤ σ ≤ 25 (seed §4.3.1: uncertain) get :data:`UNCERTAIN_GAIN` times the spread of
+15 ≤ σ ≤ 25 (seed §4.3.1: uncertain) get ``[sim] uncertain_gain`` times the spread of
 pivot and path. Spreads are log-normal for the positive constants (relative standard
 deviation exactly the ``scatter`` value, never negative) and normal for the offsets.
 
@@ -32,8 +32,6 @@ from .particle_push import particle_adhesions
 from .pivot import Regime, aspect_regime
 from .sim_wire import initial_nodes, segment_bodies, segment_count
 
-#: Scatter multiplier of pivot and path for rods with 15 ≤ σ ≤ 25.
-UNCERTAIN_GAIN = 3.0
 
 
 class Kind(IntEnum):
@@ -102,7 +100,7 @@ def build_objects(bodies: Sequence[Body], params: WorldParams, rng: np.random.Ge
     mu = fr.mu_os * _lognormal(rng, fr.scatter, n)
     nu = fr.nu * _lognormal(rng, fr.scatter, n)
     adh = _lognormal(rng, params.adhesion.scatter, n)
-    gain = np.array([UNCERTAIN_GAIN if b.elongated and b.length / b.diameter >= 15.0 else 1.0
+    gain = np.array([params.sim.uncertain_gain if b.elongated and b.length / b.diameter >= 15.0 else 1.0
                      for b in bodies])
     pivot = params.push.pivot_scatter * gain * rng.standard_normal(n)
     path = params.push.path_scatter * gain * rng.standard_normal(n)

@@ -1,7 +1,7 @@
 """Pushing physics of the simulated AFM, one DAC sample at a time, only near objects.
 
 A *push* starts when the tip, in contact with the substrate, first touches an object; it
-lasts while the tip stays within the contact distance (plus ``RELEASE`` nm), and ends
+lasts while the tip stays within the contact distance (plus ``[sim] release`` nm), and ends
 when the tip lifts or leaves. At its start the push's faults are drawn
 (:mod:`nanoasm.world.faults`) and its outcome decided by the seed's equilibrium
 (eq. 4.6-4.7 for particles and wires, 4.19-4.20 for rods, every step as the contact
@@ -11,7 +11,7 @@ object (slips over it) and the object stays.
 Motion per step (tip from ``p0`` to ``p1``, sample frame, nm):
 
 - particle (seed §4.2): translates. While the contact normal lies within
-  ``CAPTURE_DEG`` of the tip's motion (tip–object friction and the apex's size hold it,
+  ``[sim] capture_angle`` of the tip's motion (tip–object friction and the apex's size hold it,
   the seed's pushes over microns) it moves along the tip's motion turned by its own path
   error, back to the contact distance; outside that cone it slides round the tip along
   the contact normal, frictionless (:func:`~nanoasm.world.particle_push.particle_step`),
@@ -40,25 +40,19 @@ from .sim_push_support import PushWorld
 from .sim_rods import rod_motion, wire_motion
 from .sim_wire import affect_radius
 
-#: Half-angle (deg) of the cone about the tip's motion within which a particle is carried.
-CAPTURE_DEG = 45.0
-#: Clearance (nm) beyond the contact distance within which a push continues.
-RELEASE = 2.0
 #: A tip step shorter than this (nm; drift alone, or a Z-only move) pushes nothing.
 STILL = 1e-3
 
 PUSH, RIDE, GONE = "push", "ride", "gone"
 
 
-#: Length (nm) over which the tip's direction of motion is averaged: a path drawn by a DAC
-#: moves in a staircase of single-axis code steps, and the object follows the path, not
-#: each stair.
-HEADING_LENGTH = 30.0
 
 
-def _heading(ep: "Episode", p0, p1) -> tuple[float, float]:
-    """Unit direction of the tip's motion over the last ``HEADING_LENGTH`` nm of its path:
-    from a point that trails the tip by that much (or from where the push began)."""
+def _heading(ep: "Episode", p0, p1, length: float) -> tuple[float, float]:
+    """Unit direction of the tip's motion over the last ``length`` nm of its path (from a
+    point that trails the tip by that much, or from where the push began): a path drawn
+    by a DAC is a staircase of single-axis code steps, and the object follows the path,
+    not each stair (``[sim] heading_length``)."""
     if ep.trail is None:
         ep.trail = (float(p0[0]), float(p0[1]))
     dx, dy = p1[0] - ep.trail[0], p1[1] - ep.trail[1]
@@ -66,8 +60,8 @@ def _heading(ep: "Episode", p0, p1) -> tuple[float, float]:
     if d == 0.0:
         return ep.heading if ep.heading is not None else (0.0, 0.0)
     ep.heading = (dx / d, dy / d)
-    if d > HEADING_LENGTH:
-        ep.trail = (p1[0] - ep.heading[0] * HEADING_LENGTH, p1[1] - ep.heading[1] * HEADING_LENGTH)
+    if d > length:
+        ep.trail = (p1[0] - ep.heading[0] * length, p1[1] - ep.heading[1] * length)
     return ep.heading
 
 
@@ -131,11 +125,11 @@ class PushPhysics(PushWorld):
         if ep.mode == GONE:
             return False, 0.0, 0.0
         if ep.mode == RIDE:
-            if gap1 > RELEASE:
+            if gap1 > self.release:
                 self._finish(o)
                 return False, 0.0, 0.0
             return False, 0.0, self.ride_height(o, p1)
-        if gap1 > RELEASE:
+        if gap1 > self.release:
             self._finish(o)
             return False, 0.0, 0.0
         kind = self.table.kind[o]
@@ -172,11 +166,15 @@ class PushPhysics(PushWorld):
                                                      f_z, self.mu_ts))
         return ep
 
+    def _affect(self, b) -> float:
+        """Radius (nm) of the region of wire ``b`` a push bends."""
+        return affect_radius(b.length, b.diameter, self.sim.wire_affect_fraction, self.sim.wire_affect_min)
+
     def _wire_share(self, o: int) -> float:
         if self.table.kind[o] != Kind.WIRE:
             return 1.0
         b = self.table.bodies[o]
-        return min(1.0, 2.0 * affect_radius(b.length, b.diameter) / b.length)
+        return min(1.0, 2.0 * self._affect(b) / b.length)
 
     def _blocked(self, o: int, ep: Episode, p1, f_push: float, f_z: float):
         """The object does not move: the force grows with the piezo's overshoot (the tip's
@@ -227,8 +225,8 @@ class PushPhysics(PushWorld):
         sx, sy = p1[0] - p0[0], p1[1] - p0[1]
         ds = math.hypot(sx, sy)
         nx, ny, _ = particle_step(x, y, d, p0[0], p0[1], sx, sy, self.tip_radius)
-        hx, hy = _heading(ep, p0, p1)
-        if ds > 0.0 and (gx * hx + gy * hy) >= math.cos(math.radians(CAPTURE_DEG)) * dist:
+        hx, hy = _heading(ep, p0, p1, self.sim.heading_length)
+        if ds > 0.0 and (gx * hx + gy * hy) >= math.cos(math.radians(self.sim.capture_angle)) * dist:
             mx, my = hx, hy                                            # carried along the motion
             b = gx * mx + gy * my
             adv = -b + math.sqrt(max(b * b - dist * dist + rc * rc, 0.0))
@@ -254,6 +252,7 @@ class PushPhysics(PushWorld):
         if ep.faults.stuck:
             return self._blocked(o, ep, p1, ep.f_push, f_z) if self.gap(o, p1) < 0 else self._hold(o, ep, p1, f_z)
         motion = rod_motion(body, p0, p1, tip_radius=self.tip_radius, branch=ep.branch,
+                            band=self.sim.bifurcation_band,
                             pivot_offset=float(t.pivot_offset[o]))
         if motion.body is None:
             if self.gap(o, p1) < 0.0:       # past or over an end: the tip rides over the cap
@@ -285,7 +284,7 @@ class PushPhysics(PushWorld):
         if ep.faults.stuck:
             return self._blocked(o, ep, p1, ep.f_push, f_z) if self.gap(o, p1) < 0 else self._hold(o, ep, p1, f_z)
         nodes = wire_motion(self.wires[o], b.diameter, p1, tip_radius=self.tip_radius,
-                            affect=affect_radius(b.length, b.diameter),
+                            affect=self._affect(b),
                             step=(p1[0] - p0[0], p1[1] - p0[1]))
         if nodes is None:
             return self._hold(o, ep, p1, f_z)

@@ -43,6 +43,8 @@ class PushWorld:
         cl = params.cantilever
         self.k_stick = cl.lateral_gain / max(cl.C1, 1e-3)   # nN/nm: lateral stiffness of the lever
         self.faults = params.faults
+        self.sim = params.sim
+        self.release = float(params.sim.release)
         self.vdw = params.vdw
         self.rng_faults = rng_faults
         self.rng_vdw = rng_vdw

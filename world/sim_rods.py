@@ -7,7 +7,7 @@ departs from the model in two ways:
 
 - the object's own pivot offset (a fraction of its length along its axis, drawn once):
   the rotation angle of the model's step is applied about the shifted pivot;
-- the bifurcation at l = L/2 (seed §4.3.1): within ``BIFURCATION_BAND`` × L of the
+- the bifurcation at l = L/2 (seed §4.3.1): within ``band`` × L of the
   middle the rod is stepped as if pushed exactly at its middle, where the pivot jumps to
   the end picked by the push's random ``branch``.
 
@@ -29,9 +29,6 @@ from nanoasm.bodies import Body
 from .pivot import RodPose, rod_step
 from .sim_wire import bend, closest_point
 
-#: Half-width, as a fraction of the rod's length, of the band about the middle where the
-#: push is a bifurcation (either end can become the pivot).
-BIFURCATION_BAND = 0.02
 
 
 class RodMotion(NamedTuple):
@@ -51,14 +48,14 @@ def axial(body: Body, p: tuple[float, float]) -> tuple[float, float]:
 
 
 def rod_motion(body: Body, p0: tuple[float, float], p1: tuple[float, float], *, tip_radius: float,
-               branch: int, pivot_offset: float) -> RodMotion:
+               branch: int, pivot_offset: float, band: float = 0.02) -> RodMotion:
     """Step the tip from ``p0`` to ``p1`` against a rod; the rod's new pose if it turned."""
     L = body.length
     t = math.radians(body.angle)
     c, s = math.cos(t), math.sin(t)
     u1, _ = axial(body, p1)
     l = min(max(u1 + 0.5 * L, 0.0), L)
-    shift = u1 if abs(u1) < BIFURCATION_BAND * L else 0.0
+    shift = u1 if abs(u1) < band * L else 0.0
     pose = RodPose(body.at[0] + shift * c, body.at[1] + shift * s, body.angle, L, body.diameter)
     rs = rod_step(pose, p0, (p1[0] - p0[0], p1[1] - p0[1]), tip_radius=tip_radius, branch=branch)
     if not rs.contact:

@@ -9,7 +9,7 @@ push of eq. 4.4). They reach the detector as the seed describes (ch. 3):
   :func:`~nanoasm.world.cantilever.signals_from_force` (eq. 3.5, 3.6, 3.9, saturating);
 - spurious signals by :func:`~nanoasm.world.cantilever.raw_signals` (eq. 3.28 inverted):
   normal-to-lateral cross-talk α, the substrate-reflection baseline A (``reflection_n``
-  near the surface, fading with height over ``REFLECTION_DECAY``) and the piezo-bow
+  near the surface, fading with height over ``[sim] reflection_decay``) and the piezo-bow
   baseline B (rising linearly from 0 to ``reflection_l`` across the working area, the
   tilted free-scan line of the seed's Fig. 3.14), plus detector noise;
 - the deflected tip sits at ``piezo + R(ψ)⁻¹ (C2 S̄_n, C1 S̄_l)`` (eq. 3.30-3.34,
@@ -32,8 +32,6 @@ from .cantilever import (
 )
 from .params import WorldParams
 
-#: Height (nm) over which the substrate-reflection baseline fades as the tip lifts.
-REFLECTION_DECAY = 1000.0
 
 
 def lever_from_params(params: WorldParams) -> Cantilever:
@@ -55,12 +53,13 @@ class SignalModel:
     noise_rms: float
     x0: float
     width: float
+    reflection_decay: float = 1000.0
 
     @classmethod
     def from_params(cls, params: WorldParams, x0: float, width: float) -> SignalModel:
         c = params.cantilever
         return cls(lever_from_params(params), params.scanner.scan_angle, c.reflection_n,
-                   c.reflection_l, c.signal_rms, float(x0), float(width))
+                   c.reflection_l, c.signal_rms, float(x0), float(width), params.sim.reflection_decay)
 
     @property
     def offset_matrix(self) -> np.ndarray:
@@ -81,7 +80,7 @@ class SignalModel:
 
     def baselines(self, x: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(A, B)`` in V at scanner positions ``x`` with the tip ``height`` nm above the substrate."""
-        a = self.reflection_n * np.exp(-np.maximum(height, 0.0) / REFLECTION_DECAY)
+        a = self.reflection_n * np.exp(-np.maximum(height, 0.0) / self.reflection_decay)
         b = self.reflection_l * np.clip((x - self.x0) / self.width, 0.0, 1.0)
         return a, np.broadcast_to(b, np.shape(a))
 

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .drift_model import DriftModel
-from .sim_push import RELEASE, PushPhysics
+from .sim_push import PushPhysics
 from .sim_signals import SignalModel, twist_deg
 
 
@@ -68,7 +68,7 @@ def play_chunk(world: PushPhysics, model: SignalModel, nm: np.ndarray, off: np.n
     f_lat = f_fric.copy()
     defl = np.maximum(h_obs - z, 0.0)
     n, i, version = len(z), 0, None
-    margin = max_step + RELEASE + 2.0 * model.lever.c2 * world.max_height / model.lever.normal_gain + 1.0
+    margin = max_step + world.release + 2.0 * model.lever.c2 * world.max_height / model.lever.normal_gain + 1.0
     while i < n:
         if version != world.version:
             slow, h_obj = _classify(world, tip[i:], z[i:], contact[i:], margin)

@@ -26,10 +26,6 @@ import numpy as np
 
 from nanoasm.bodies import Body
 
-#: Radius of the affecting region as a fraction of the wire's length, and its floor in
-#: diameters (the seed's a = f(b, t) is empirical; these values are ours).
-AFFECT_FRACTION = 0.25
-AFFECT_MIN_DIAMETERS = 4.0
 #: Segments per wire: about one per two diameters, within these bounds.
 MIN_SEGMENTS, MAX_SEGMENTS = 6, 48
 
@@ -39,9 +35,11 @@ def segment_count(length: float, diameter: float) -> int:
     return int(min(MAX_SEGMENTS, max(MIN_SEGMENTS, round(length / diameter / 2.0))))
 
 
-def affect_radius(length: float, diameter: float) -> float:
-    """Radius ``a`` (nm) of the region a push deforms (seed ch. 6, Fig. 6.3)."""
-    return min(length, max(AFFECT_MIN_DIAMETERS * diameter, AFFECT_FRACTION * length))
+def affect_radius(length: float, diameter: float, fraction: float = 0.25, min_diameters: float = 4.0) -> float:
+    """Radius ``a`` (nm) of the region a push deforms (seed ch. 6, Fig. 6.3): ``fraction``
+    of the length, at least ``min_diameters`` diameters (``[sim] wire_affect_*``; the
+    seed's a = f(b, t) is empirical)."""
+    return min(length, max(min_diameters * diameter, fraction * length))
 
 
 def initial_nodes(body: Body, m: int) -> np.ndarray:
