@@ -76,3 +76,26 @@ def test_a_dry_run_is_reproducible(bowtie):
     b = dry_run(scene, layout, seed=11, options=ExecOptions(strategy="kalman")).report
     strip = lambda r: {k: v for k, v in r.to_dict().items() if k != "wall_time"}  # noqa: E731
     assert strip(a) == strip(b)
+
+
+@pytest.mark.parametrize("fault", ["stuck_object", "tip_slip", "lost_object", "tip_blunting"])
+def test_injected_faults_are_survived(bowtie, fault):
+    """With a fault striking 30 % of pushes, the run still ends normally, says what failed,
+    and writes a valid report."""
+    from dataclasses import replace
+
+    from nanoasm.world.params import FaultParams
+
+    scene, layout = bowtie
+    scene = replace(scene, params=replace(scene.params, faults=FaultParams(**{fault: 0.3})))
+    out = dry_run(scene, layout, seed=3, options=ExecOptions(strategy="full"))
+    rep = out.report
+    assert report_from_dict(json.loads(rep.dumps())) == rep
+    if fault != "tip_blunting":
+        assert out.summary.failures, "the faults went unnoticed"
+        assert rep.counts.replans > 0
+    # a lost object keeps no slot: its slot is reported unfilled, and why
+    assigned = {a.object for a in out.summary.assignment}
+    for oid, cause in out.summary.failures:
+        if cause == "lost" and oid in out.summary.belief.lost:
+            assert oid not in assigned
