@@ -136,9 +136,6 @@ class Assembly:
         return o.line_factor * max(r, o.r_max_floor)
 
     # -- building blocks (generators) -----------------------------------------------
-    def _clock(self):
-        return (yield Msg("clock"))
-
     def _scan(self, pattern):
         """Run a local-scan pattern through scan_line messages; returns its result."""
         t0 = yield Msg("clock")

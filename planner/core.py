@@ -89,10 +89,7 @@ class _Session:
         """Whether the tip can be put down behind a push from a to b: contact-free, except
         with fixed things the object itself lies on (it is being pushed off them)."""
         rt = self.options.tip_radius
-        saved = self.space.clearance
-        self.space.clearance = 0.0
-        exempt = frozenset(self.space.fixed_hits(body.geometry(), body.radius).tolist())
-        self.space.clearance = saved
+        exempt = self.space.lying_on(body.geometry(), body.radius)
 
         def ok(a, b) -> bool:
             d = math.dist(a, b)
@@ -100,12 +97,7 @@ class _Session:
                 return True
             off = body.radius + rt + self.options.lead
             tip = (a[0] - (b[0] - a[0]) / d * off, a[1] - (b[1] - a[1]) / d * off)
-            saved = self.space.clearance
-            self.space.clearance = 0.0
-            try:
-                return self.space.is_free(shapely.Point(tip), rt, (body.id,), exempt)
-            finally:
-                self.space.clearance = saved
+            return self.space.is_free(shapely.Point(tip), rt, (body.id,), exempt, clearance=0.0)
         return ok
 
     def move_particle(self, obj: EnvObject, goal: tuple[float, float], target: str | None) -> bool:

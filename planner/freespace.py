@@ -49,10 +49,6 @@ class FreeSpace:
         self.bodies[body.id] = body
         self._dirty = True
 
-    def remove(self, body_id: str) -> None:
-        self.bodies.pop(body_id, None)
-        self._dirty = True
-
     def _index(self) -> None:
         if not self._dirty:
             return
@@ -68,39 +64,49 @@ class FreeSpace:
         x0, y0, x1, y1 = geom.bounds
         return x0 >= radius and y0 >= radius and x1 <= self.area[0] - radius and y1 <= self.area[1] - radius
 
-    def _hits(self, geom, radius, tree, cores, radii, rmax) -> np.ndarray:
+    def _hits(self, geom, radius, tree, cores, radii, rmax, clearance) -> np.ndarray:
         if tree is None:
             return np.empty(0, dtype=int)
-        reach = radius + self.clearance
+        reach = radius + (self.clearance if clearance is None else clearance)
         idx = tree.query(geom, predicate="dwithin", distance=reach + rmax)
         if idx.size == 0:
             return idx
         d = shapely.distance(geom, cores[idx])
         return idx[d < reach + radii[idx] - 1e-9]
 
-    def fixed_hits(self, geom: shapely.Geometry, radius: float) -> np.ndarray:
-        """Indices of fixed entries within reach of the footprint (geom, radius)."""
-        return self._hits(geom, radius, self._fixed_tree, self._fixed, self._fixed_r, self._fixed_rmax)
+    def fixed_hits(self, geom: shapely.Geometry, radius: float, clearance: float | None = None) -> np.ndarray:
+        """Indices of fixed entries within reach of the footprint (geom, radius).
 
-    def blockers(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = ()) -> list[str]:
+        ``clearance`` overrides the space's own (0: contact only)."""
+        return self._hits(geom, radius, self._fixed_tree, self._fixed, self._fixed_r, self._fixed_rmax,
+                          clearance)
+
+    def lying_on(self, geom: shapely.Geometry, radius: float) -> frozenset[int]:
+        """Fixed entries a footprint already touches (an object found on a keep-out may be
+        pushed off it: checks exempt these)."""
+        return frozenset(self.fixed_hits(geom, radius, 0.0).tolist())
+
+    def blockers(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = (),
+                 clearance: float | None = None) -> list[str]:
         """Ids of movable bodies within reach of the footprint, sorted."""
         self._index()
-        idx = self._hits(geom, radius, self._tree, self._cores, self._radii, self._rmax)
+        idx = self._hits(geom, radius, self._tree, self._cores, self._radii, self._rmax, clearance)
         skip = set(ignore)
         return sorted(self._ids[i] for i in idx if self._ids[i] not in skip)
 
     def is_free(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = (),
-                exempt_fixed: frozenset[int] = frozenset()) -> bool:
-        """True when the footprint (or the area it sweeps, for a segment) is clear.
+                exempt_fixed: frozenset[int] = frozenset(), clearance: float | None = None) -> bool:
+        """True when the footprint (or the area it sweeps, for a segment) is clear by
+        ``clearance`` (default: the space's own; 0: no contact).
 
         ``exempt_fixed``: fixed entries not to count (ones an object already lies on).
         """
         if not self.inside(geom, radius):
             return False
-        hits = self.fixed_hits(geom, radius)
+        hits = self.fixed_hits(geom, radius, clearance)
         if hits.size and not set(hits.tolist()) <= exempt_fixed:
             return False
-        return not self.blockers(geom, radius, ignore)
+        return not self.blockers(geom, radius, ignore, clearance)
 
     def slack(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = (),
               horizon: float = 1e3) -> float:

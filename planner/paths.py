@@ -48,22 +48,11 @@ class Mover:
     def lying_on(self, p: Point) -> None:
         """Let contact-only checks ignore the fixed things the object at ``p`` already
         overlaps (an object found on a keep-out may be pushed off it)."""
-        saved = self.space.clearance
-        self.space.clearance = 0.0
-        try:
-            self.exempt = frozenset(self.space.fixed_hits(shapely.Point(p), self.radius).tolist())
-        finally:
-            self.space.clearance = saved
+        self.exempt = self.space.lying_on(shapely.Point(p), self.radius)
 
     def free(self, geom: shapely.Geometry, *, clearance: float | None = None) -> bool:
-        if clearance is None:
-            return self.space.is_free(geom, self.radius, (self.id,))
-        saved = self.space.clearance
-        self.space.clearance = clearance
-        try:
-            return self.space.is_free(geom, self.radius, (self.id,), self.exempt if clearance == 0 else frozenset())
-        finally:
-            self.space.clearance = saved
+        exempt = self.exempt if clearance == 0 else frozenset()
+        return self.space.is_free(geom, self.radius, (self.id,), exempt, clearance)
 
     def point(self, p: Point, **kw) -> bool:
         return self.free(shapely.Point(p), **kw)
@@ -226,7 +215,3 @@ def path_length(path: Path) -> float:
 
 def turns(path: Path) -> int:
     return max(len(path) - 2, 0)
-
-
-def as_array(path: Path) -> np.ndarray:
-    return np.asarray(path, dtype=float).reshape(-1, 2)

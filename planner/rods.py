@@ -93,13 +93,6 @@ def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str, clearance: float
 
     ``exempt``: fixed things not to count (ones the rod started on, to be pushed off).
     """
-    if clearance is not None:
-        saved = space.clearance
-        space.clearance = clearance
-        try:
-            return swept_free(space, a, b, ignore, None, exempt)
-        finally:
-            space.clearance = saved
     turn = axis_error(a.angle, b.angle)
     n = max(1, math.ceil(turn / 2.0), math.ceil(math.dist(a.at, b.at) / max(a.radius, 1.0)))
     # interpolate along the shorter way round the axis angle
@@ -108,18 +101,14 @@ def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str, clearance: float
         t = k / n
         pose = Body(a.id, "rod", (a.at[0] + t * (b.at[0] - a.at[0]), a.at[1] + t * (b.at[1] - a.at[1])),
                     a.diameter, a.angle + t * d_ang, a.length)
-        if not space.is_free(pose.geometry(), pose.radius, (ignore,), exempt):
+        if not space.is_free(pose.geometry(), pose.radius, (ignore,), exempt, clearance):
             return False
     return True
 
 
 def _tip_free(space: FreeSpace, tip: Point, tip_radius: float, ignore: str) -> bool:
-    saved = space.clearance
-    space.clearance = 0.0
-    try:
-        return space.is_free(shapely.Point(tip), tip_radius, (ignore,))
-    finally:
-        space.clearance = saved
+    """Whether the tip can be put down at ``tip`` without touching anything but the rod."""
+    return space.is_free(shapely.Point(tip), tip_radius, (ignore,), clearance=0.0)
 
 
 @dataclass(frozen=True)
@@ -343,10 +332,7 @@ class RodController:
 
         The direct search may take ``options.time_budget`` seconds, the legs along an
         SE(2) path three times that."""
-        saved = self.space.clearance
-        self.space.clearance = 0.0
-        self.exempt = frozenset(self.space.fixed_hits(rod.geometry(), rod.radius).tolist())
-        self.space.clearance = saved
+        self.exempt = self.space.lying_on(rod.geometry(), rod.radius)
         near_pos = 0.3 * math.radians(self.options.rod_swing) * rod.length
         near_ang = self.options.rod_swing / 2
         cramped = not swept_free(self.space, rod, rod, rod.id, None, self.exempt)
