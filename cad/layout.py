@@ -15,12 +15,10 @@ import shapely
 from nanoasm.bodies import (
     Body,
     body_from_table,
+    check_placement,
     check_unique_ids,
-    outside_area,
-    overlapping_pairs,
     polygon_from_table,
     polygon_geometry,
-    polygon_overlaps,
 )
 from nanoasm.fileio import Document, read_document
 from nanoasm.schema import Point, Table, check_format
@@ -126,13 +124,7 @@ def layout_from_dict(data: dict, source: str | None = None) -> Layout:
         keepouts.append(Keepout(pts))
         polys.append(poly)
 
-    for tt, tg in zip(ttables, targets):
-        if outside_area(tg, area):
-            tt.fail(None, f"target {tg.id!r} lies (partly) outside the area {area[0]:g} x {area[1]:g}")
-    for i, j in overlapping_pairs(targets):
-        ttables[j].fail(None, f"target {targets[j].id!r} overlaps target {targets[i].id!r}")
-    for i, k in polygon_overlaps(targets, polys):
-        ttables[i].fail(None, f"target {targets[i].id!r} overlaps {ktables[k].path}")
+    check_placement("target", ttables, targets, area, ktables, polys)
 
     return Layout(area, tuple(targets), tuple(keepouts), tolerance, name)
 

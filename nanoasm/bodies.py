@@ -166,6 +166,19 @@ def polygon_overlaps(bodies: Sequence[Body], polygons: Sequence[shapely.Polygon]
     return pairs[:limit] if limit else pairs
 
 
+def check_placement(noun: str, tables: Sequence[Table], bodies: Sequence[Body], area: Point,
+                    region_tables: Sequence[Table], regions: Sequence[shapely.Polygon]) -> None:
+    """Every footprint inside the area, none overlapping another or entering a region
+    (keep-out, obstacle); the first violation fails with the offending table's path."""
+    for t, b in zip(tables, bodies):
+        if outside_area(b, area):
+            t.fail(None, f"{noun} {b.id!r} lies (partly) outside the area {area[0]:g} x {area[1]:g}")
+    for i, j in overlapping_pairs(bodies):
+        tables[j].fail(None, f"{noun} {bodies[j].id!r} overlaps {noun} {bodies[i].id!r}")
+    for i, k in polygon_overlaps(bodies, regions):
+        tables[i].fail(None, f"{noun} {bodies[i].id!r} overlaps {region_tables[k].path}")
+
+
 def polygon_from_table(t: Table, name: str = "polygon") -> tuple[tuple[Point, ...], shapely.Polygon]:
     """A simple polygon with positive area; a closing repeat of the first vertex is allowed."""
     pts = t.points(name, min_len=3)

@@ -17,12 +17,10 @@ import shapely
 from nanoasm.bodies import (
     Body,
     body_from_table,
+    check_placement,
     check_unique_ids,
-    outside_area,
-    overlapping_pairs,
     polygon_from_table,
     polygon_geometry,
-    polygon_overlaps,
 )
 from nanoasm.fileio import Document, read_document
 from nanoasm.schema import Point, Table, check_format
@@ -105,13 +103,7 @@ def scene_from_dict(data: dict, source: str | None = None) -> Scene:
 
     params = WorldParams.from_document(t)
 
-    for ot, o in zip(otables, objects):
-        if outside_area(o, area):
-            ot.fail(None, f"object {o.id!r} lies (partly) outside the area {area[0]:g} x {area[1]:g}")
-    for i, j in overlapping_pairs(objects):
-        otables[j].fail(None, f"object {objects[j].id!r} overlaps object {objects[i].id!r}")
-    for i, k in polygon_overlaps(objects, polys):
-        otables[i].fail(None, f"object {objects[i].id!r} overlaps {btables[k].path}")
+    check_placement("object", otables, objects, area, btables, polys)
 
     return Scene(area, tuple(objects), tuple(obstacles), params, seed)
 
