@@ -30,6 +30,7 @@ from ezdxf.entities import DXFGraphic
 from ezdxf.path import make_path
 
 from nanoasm.errors import InputError
+from nanoasm.fileio import read_bytes
 
 from .importers import (
     FLATTEN_NM,
@@ -38,7 +39,6 @@ from .importers import (
     area_option,
     axis_rectangle,
     positive_option,
-    read_bytes,
 )
 
 AREA_LAYER = "AREA"

@@ -27,6 +27,7 @@ import gdstk
 import numpy as np
 
 from nanoasm.errors import InputError
+from nanoasm.fileio import read_bytes
 
 from .importers import (
     LayoutBuilder,
@@ -36,7 +37,6 @@ from .importers import (
     flag,
     layer_option,
     name_option,
-    read_bytes,
     ring,
 )
 

@@ -24,7 +24,6 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from nanoasm.errors import InputError
-from nanoasm.fileio import MAX_BYTES
 
 FORMAT = "nanoasm.layout/1"
 
@@ -133,25 +132,6 @@ def name_option(name: str, value: Any) -> str:
 
 
 # -- files --------------------------------------------------------------------------
-
-def read_bytes(path: str | os.PathLike) -> bytes:
-    """The bytes of ``path``; missing, unreadable, oversized and empty files are refused."""
-    p, src = Path(path), str(path)
-    if not p.exists():
-        raise InputError(src, None, "no such file")
-    if p.is_dir():
-        raise InputError(src, None, "is a directory, not a file")
-    try:
-        size = p.stat().st_size
-        if size > MAX_BYTES:
-            raise InputError(src, None, f"file is too large ({size} bytes; at most {MAX_BYTES})")
-        raw = p.read_bytes()
-    except OSError as exc:
-        raise InputError(src, None, f"cannot read: {exc.strerror or exc}") from None
-    if not raw.strip():
-        raise InputError(src, None, "file is empty")
-    return raw
-
 
 # -- geometry -----------------------------------------------------------------------
 

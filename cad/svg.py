@@ -34,7 +34,9 @@ import svgelements as S
 
 from nanoasm.errors import InputError
 
-from .importers import FLATTEN_NM, LayoutBuilder, Point, name_option, positive_option, read_bytes
+from nanoasm.fileio import read_bytes
+
+from .importers import FLATTEN_NM, LayoutBuilder, Point, name_option, positive_option
 
 SVG_NS = "{http://www.w3.org/2000/svg}"
 #: Attributes added before svgelements parses the file: an element's name in errors,

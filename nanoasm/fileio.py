@@ -21,12 +21,11 @@ from .errors import InputError
 MAX_BYTES = 64 * 1024 * 1024
 
 
-def read_text(path: str | os.PathLike, *, what: str = "file") -> str:
-    """Return the text of ``path``, refusing missing, empty, binary or non-UTF-8 files."""
-    p = Path(path)
-    src = str(path)
+def read_bytes(path: str | os.PathLike) -> bytes:
+    """The bytes of ``path``; missing, unreadable, oversized and empty files are refused."""
+    p, src = Path(path), str(path)
     if not p.exists():
-        raise InputError(src, None, f"no such {what}")
+        raise InputError(src, None, "no such file")
     if p.is_dir():
         raise InputError(src, None, "is a directory, not a file")
     try:
@@ -36,7 +35,14 @@ def read_text(path: str | os.PathLike, *, what: str = "file") -> str:
         raw = p.read_bytes()
     except OSError as exc:
         raise InputError(src, None, f"cannot read: {exc.strerror or exc}") from None
-    return decode_text(raw, src)
+    if not raw.strip():
+        raise InputError(src, None, "file is empty")
+    return raw
+
+
+def read_text(path: str | os.PathLike) -> str:
+    """Return the text of ``path``, refusing missing, empty, binary or non-UTF-8 files."""
+    return decode_text(read_bytes(path), str(path))
 
 
 def decode_text(raw: bytes, src: str) -> str:
