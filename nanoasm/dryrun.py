@@ -22,7 +22,7 @@ from nanoasm.executor.report import InstrumentTime, Report, WallTime
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.planner import PlanOptions
 from nanoasm.planner.plan import Assignment
-from nanoasm.planner.assign import axis_error, size_ok
+from nanoasm.planner.assign import in_slot
 from nanoasm.world.scene import Scene
 from nanoasm.world.sim import SimulatedAFM
 
@@ -82,9 +82,7 @@ def filled_slots(layout: Layout, assignment, final: dict[str, Body]) -> tuple[tu
         if o is None:
             continue
         errors[t.id] = math.dist(t.at, o.at)
-        ok = (o.kind == t.kind and size_ok(t, o, tol) and errors[t.id] <= tol.position
-              and (t.kind != "rod" or axis_error(o.angle, t.angle) <= tol.angle) and o.id not in used)
-        if ok:
+        if in_slot(t, o, tol) and o.id not in used:
             filled.append(t.id)
             used.add(o.id)
     return tuple(filled), errors

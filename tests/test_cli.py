@@ -137,7 +137,7 @@ def test_identify_a_simulated_scan(tmp_path, capsys):
     assert not (tmp_path / "e.json").exists()
 
 
-def test_run_without_the_ni_driver_says_so_in_one_line(capsys, monkeypatch, tmp_path):
+def test_run_without_the_ni_driver_says_so_in_one_line(capsys, tmp_path):
     pytest.importorskip("nidaqmx")
     code, _, err = run(capsys, "run", str(example("bowtie.toml")), "--instrument",
                        str(example("instrument_ni.toml")), "--report", str(tmp_path / "r.json"))

@@ -134,9 +134,15 @@ def test_rod_zigzag_reaches_its_slot_under_the_pivot_model():
     assert math.dist(final.at, (2500.0, 1500.0)) <= tol.position
     assert axis_error(final.angle, 0.0) <= tol.angle
     assert stats.rod_pushes[0] == len(plan.operations) < 80
-    # the pushes alternate ends and never push near the middle (l = L/2 bifurcation)
+    # every push is near an end, never near the middle (l = L/2, the bifurcation), and
+    # says which way the rod will point
+    pose = rod
     for op in plan.operations:
         assert op.expect.angle is not None and 0 <= op.expect.angle < 180
+        c, s = math.cos(math.radians(pose.angle)), math.sin(math.radians(pose.angle))
+        along = (op.tip_path[0][0] - pose.at[0]) * c + (op.tip_path[0][1] - pose.at[1]) * s
+        assert abs(along) > 0.3 * pose.length
+        pose = simulate_push(pose, op.tip_path[0], op.tip_path[-1], 10.0)
     assert check_plan(plan, layout, env) == []
 
 
