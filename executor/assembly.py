@@ -22,6 +22,7 @@ import numpy as np
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
 from nanoasm.drift import DriftFilter, DriftFilterParams
+from nanoasm.drift.creep import CreepingOffset
 from nanoasm.planner import Operation, Plan, PlanOptions, Replanner
 from nanoasm.planner.assign import in_slot
 from nanoasm.planner.plan import Assignment, Unfilled
@@ -32,7 +33,7 @@ from nanoasm.world.identify import identify
 from .belief import Belief
 from .dac import plan_dac
 from .dac_frames import LinearDrift
-from .trajectory import operation
+from .trajectory import PUSH, TRAVEL, operation
 from .engine import Msg
 from .local_scan import particle_after, particle_before, rod_after, rod_before
 from .lost_search import find_lost_particle
@@ -94,6 +95,8 @@ class Assembly:
         self._plan_start: dict[int, tuple] = {}  # pose each operation expects to start from
         self.preload_factor: dict[str, float] = {}
         self.move_log: list[tuple[float, np.ndarray]] = []
+        self._creep_anchor: np.ndarray | None = None   # where the last recorded move ended, nm
+        self._scan_ref: float | None = None   # time of the running pattern's first line
         self.epoch = 0.0
         self.origin = np.zeros(2)
 
@@ -141,6 +144,7 @@ class Assembly:
         t0 = yield Msg("clock")
         travel0 = self.times["travel"]
         self.counts["local_scans"] += 1
+        self._scan_ref = None
         try:
             line = next(pattern)
             while True:
@@ -156,24 +160,42 @@ class Assembly:
 
     def _scan_line(self, a: np.ndarray, b: np.ndarray, n: int):
         """A scan line, cut to the scanner's range: samples beyond it read as bare
-        substrate (the median of the rest), so a pattern near the range's edge still works."""
+        substrate (the median of the rest), so a pattern near the range's edge still works.
+
+        The lines of one pattern are drift-compensated: each is shifted by the offset
+        predicted since the pattern's first line (``_scan_ref``), so the pattern sees the
+        sample as it lay then, however fast creep moves it after a travel, and its result
+        is converted with the offset of that time."""
         yield from self._approach(a)
+        t_line = yield Msg("clock")
+        if self._scan_ref is None:
+            self._scan_ref = t_line
+        shift = self.offset(t_line) - self.offset(self._scan_ref)
+        a, b = a + shift, b + shift
         lo, hi = self.config.lower[:2], self.config.upper[:2]
         s = np.linspace(0.0, 1.0, n)
         pts = a[None, :] + s[:, None] * (b - a)[None, :]
         inside = np.all((pts >= lo) & (pts <= hi), axis=1)
         if inside.all():
+            t0 = yield Msg("clock")
             profile = np.asarray((yield Msg("scan_line", (tuple(a), tuple(b), n))), float)
             t = yield Msg("clock")
-            self._record(b - a, t)
+            self._moved_to(a, t0)
+            self._moved_to(b, t)
+            yield Msg("emit", ("scan_line", self._line_doc(a, b, profile, t)))
             return profile
         idx = np.flatnonzero(inside)
         if idx.size < 2:
             return np.zeros(n)
         i0, i1 = int(idx[0]), int(idx[-1])
+        t0 = yield Msg("clock")
         part = np.asarray((yield Msg("scan_line", (tuple(pts[i0]), tuple(pts[i1]), i1 - i0 + 1))), float)
+        t = yield Msg("clock")
+        self._moved_to(pts[i0], t0)
+        self._moved_to(pts[i1], t)
         out = np.full(n, float(np.median(part)))
         out[i0:i1 + 1] = part
+        yield Msg("emit", ("scan_line", self._line_doc(a, b, out, t)))
         return out
 
     def _locate(self, obj_id: str):
@@ -202,7 +224,7 @@ class Assembly:
                                                        2 * o.diameter, measure_angle=True, options=self.scan_opts))
             if not res.found or self._someone_else(obj_id, np.asarray(res.centre, float) - off):
                 return None
-        t = yield Msg("clock")
+        t = self._scan_ref if self._scan_ref is not None else (yield Msg("clock"))
         centre = np.asarray(res.centre, float)
         angle = res.angle if o.kind == "rod" and res.angle is not None else o.angle
         body = Body(o.id, o.kind, (float(centre[0]), float(centre[1])), o.diameter,
@@ -249,6 +271,39 @@ class Assembly:
         off = self.offset(t)
         self.drift_log.append((t, float(off[0]), float(off[1])))
 
+    # -- documents for the run log (emitted; subscribers such as RunLog keep them) -----
+    def _drift_doc(self, t: float) -> dict:
+        """The drift estimate at ``t``: offset since the start (nm), its covariance (nm²;
+        None without a filter) and the drift velocity (nm/s)."""
+        if self.filter is not None:
+            t = max(t, self.filter.time)
+        off = self.offset(t) - self.origin
+        doc = {"t": t, "offset": [float(off[0]), float(off[1])], "cov": None, "velocity": None}
+        if self.filter is not None:
+            doc["cov"] = np.asarray(self.filter.offset(t).cov, float).tolist()
+            doc["velocity"] = [float(v) for v in self.filter.x[2:]]
+        return doc
+
+    def _emit_drift(self, t: float):
+        """Emit the drift estimate after a filter or anchor update."""
+        if self.filter is not None or self.strategy.anchored:
+            yield Msg("emit", ("drift", self._drift_doc(t)))
+
+    def _line_doc(self, a, b, heights, t: float) -> dict:
+        """A local-scan line: end points (scanner frame), heights, and the scanner position
+        of the layout origin as estimated then (layout = scanner - offset)."""
+        off = self.offset(t if self.filter is None else max(t, self.filter.time))
+        return {"t": t, "a": [float(a[0]), float(a[1])], "b": [float(b[0]), float(b[1])],
+                "heights": np.asarray(heights, float).tolist(), "offset": [float(off[0]), float(off[1])]}
+
+    def _dac_doc(self, codes, kind, block, every: int = 50) -> dict:
+        """A streamed DAC chunk, every ``every``-th sample: scanner nm, kind, signals."""
+        nm = self.config.codes_to_nm(np.asarray(codes)[::every])
+        return {"t": block.t[::every].tolist(), "x": nm[:, 0].tolist(), "y": nm[:, 1].tolist(),
+                "z": nm[:, 2].tolist(), "kind": np.asarray(kind)[::every].tolist(),
+                "s_n": block.s_n[::every].tolist(), "s_l": block.s_l[::every].tolist(),
+                "n": int(len(codes)), "every": every}
+
     def _reference(self, near: tuple[float, float]):
         """Measure drift on an untouched object (kalman/full) or the anchor (anchor)."""
         t = yield Msg("clock")
@@ -259,6 +314,7 @@ class Assembly:
                 body, cov, t, _ = found
                 self.anchor_offset = np.asarray(body.at) - self.origin - np.asarray(home)
                 self._log_drift(t)
+                yield from self._emit_drift(t)
             return
         if self.filter is None:
             return
@@ -278,6 +334,7 @@ class Assembly:
         if not self._drift_measurement(ref.id, body, cov, t):
             yield Msg("event", (f"{ref.id} moved on its own (gated out of the drift estimate)",),
                       {"level": "warn"})
+        yield from self._emit_drift(t)
         self._observe(ref.id, self._layout(body, t).at, t, cov)
 
     # -- one push -------------------------------------------------------------------
@@ -291,19 +348,28 @@ class Assembly:
             cfg = replace(cfg, preload=min(cfg.preload * factor, 0.45 * cfg.z_range))
         current = yield Msg("position")
         t0 = yield Msg("clock")
-        drift = LinearDrift(tuple(self.offset(t0)), tuple(self.offset_velocity()), t0)
         moves = operation(op.tip_path, push_speed=self.options.push_speed)
-        dac = plan_dac(moves, cfg, current, t0=t0, drift=drift, lever=self.lever)
+        dac = plan_dac(moves, cfg, current, t0=t0, drift=self._predicted_drift(t0), lever=self.lever)
+        pending = self._pending_travel(dac, current)
+        if pending:     # the travel to the push creeps while the push runs: follow it
+            dac = plan_dac(moves, cfg, current, t0=t0, drift=self._predicted_drift(t0, pending),
+                           lever=self.lever)
         monitor = PushMonitor(cfg.preload, lever=self.lever, force_limit=self.options.force_limit)
         verdict = None
         n_push = n_other = 0
-        travel_end = None
+        travel_end = push_end = None
         for chunk in dac.chunks(self.options.chunk):
             block = yield Msg("write", (chunk.codes,))
-            pushing_now = chunk.kind == 2
-            if pushing_now.any():        # travel, lowering and push make one move for creep
-                k = int(np.flatnonzero(pushing_now)[-1])
-                travel_end = (chunk.codes[k], float(block.t[k]))
+            yield Msg("emit", ("dac", self._dac_doc(chunk.codes, chunk.kind, block)))
+            # creep follows the travel and the push as two moves, each ended where XY stops
+            for kind, mark in ((TRAVEL, "travel"), (PUSH, "push")):
+                idx = np.flatnonzero(chunk.kind == kind)
+                if idx.size:
+                    end = (chunk.codes[idx[-1]], float(block.t[idx[-1]]))
+                    if mark == "travel":
+                        travel_end = end
+                    else:
+                        push_end = end
             lifted = chunk.kind == 0                                   # travel: free air
             if lifted.any() and not monitor.in_contact:
                 monitor.set_baseline(block.s_n[lifted], block.s_l[lifted])
@@ -315,8 +381,9 @@ class Assembly:
                 if v.failed:
                     verdict = v
                     break
-        if travel_end is not None:
-            self._moved(current, *travel_end)
+        for end in (travel_end, push_end):
+            if end is not None:
+                self._moved(current, *end)
         if verdict is None:
             verdict = monitor.finish()
         if verdict.failed:
@@ -325,6 +392,38 @@ class Assembly:
         self.times["push"] += n_push / rate
         self.times["travel"] += n_other / rate
         return verdict
+
+    def _predicted_drift(self, t0: float, pending=()):
+        """The scanner offset of the layout origin as a function of time from ``t0``: the
+        filter's thermal drift and the creep of the recorded moves and of ``pending``
+        ones ``(t_end, step)`` (instrument s, nm)."""
+        if self.filter is None:
+            return LinearDrift(tuple(self.offset(t0)), (0.0, 0.0), t0)
+        creep = self.filter.creep
+        thermal = self.offset(t0) - creep.offset(t0 - self.epoch)
+        return CreepingOffset(thermal, self.offset_velocity(), t0, creep, self.epoch, pending)
+
+    def _pending_travel(self, dac, current) -> list:
+        """The move the push's own travel will be recorded as (see :meth:`_moved_to`):
+        ``[(t_end, step)]``, or ``[]`` if it is too short to creep."""
+        if self.filter is None:
+            return []
+        prof = dac.profile
+        travel = np.flatnonzero(prof.kind == TRAVEL)
+        push = np.flatnonzero(prof.kind == PUSH)
+        travel = travel[travel < push[0]] if push.size else travel
+        if not travel.size:
+            return []
+        k = int(prof.ends[travel[-1]])
+        if k < 1:
+            return []
+        end = dac.render(np.array([k])).nm[0, :2]
+        anchor = (self._creep_anchor if self._creep_anchor is not None
+                  else self.config.codes_to_nm(np.asarray(current))[:2])
+        step = end - anchor
+        if math.hypot(*step) < self.filter.params.creep.min_step:
+            return []
+        return [(dac.t0 + k / self.config.sample_rate, step)]
 
     def _travel_to(self, xy):
         """Lifted travel to ``xy`` (scanner frame nm) within the slew limit."""
@@ -349,10 +448,25 @@ class Assembly:
             yield from self._travel_to(np.clip(np.asarray(xy, float), lo, hi))
 
     def _moved(self, start_codes, end_codes, t: float) -> None:
-        """Tell the drift filter about a scanner move finished at ``t`` (creep follows it)."""
-        a = self.config.codes_to_nm(np.asarray(start_codes))[:2]
-        b = self.config.codes_to_nm(np.asarray(end_codes))[:2]
-        self._record(b - a, t)
+        """Tell the drift filter about a scanner move from ``start_codes`` finished at ``t``."""
+        cfg = self.config
+        self._moved_to(cfg.codes_to_nm(np.asarray(end_codes))[:2], t,
+                       start=cfg.codes_to_nm(np.asarray(start_codes))[:2])
+
+    def _moved_to(self, xy, t: float, start=None) -> None:
+        """The scanner reached ``xy`` (nm) at ``t``: creep follows the step from where the
+        last recorded move ended. A step shorter than the creep model's ``min_step`` is
+        not recorded and does not restart the chain, so its displacement is carried into
+        the next move: every displacement creeps, only its time is coarsened."""
+        if self.filter is None:
+            return
+        xy = np.asarray(xy, float)
+        if self._creep_anchor is None:
+            self._creep_anchor = np.asarray(xy if start is None else start, float)
+        step = xy - self._creep_anchor
+        if math.hypot(*step) >= self.filter.params.creep.min_step:
+            self._record(step, t)
+            self._creep_anchor = xy
 
     def _record(self, step, t: float) -> None:
         if self.filter is None:
@@ -408,6 +522,7 @@ class Assembly:
         yield Msg("event", (f"drift from the full scan's skew: {v[0]:+.3f}, {v[1]:+.3f} nm/s "
                             f"(+/- {math.sqrt(self.filter.P[2, 2]):.3f}) from {len(rows)} objects",))
         self._log_drift(rows[-1][3])
+        yield from self._emit_drift(rows[-1][3])
 
     def _lift(self):
         """Stop a push: lift the tip straight up within the slew limit."""
@@ -446,7 +561,7 @@ class Assembly:
         res = yield from self._scan(pattern)
         if not res.found:
             return None
-        t = yield Msg("clock")
+        t = self._scan_ref if self._scan_ref is not None else (yield Msg("clock"))
         centre = np.asarray(res.centre, float) - self.offset(t)
         if self._someone_else(op.object, centre, expected=np.asarray(op.expect.at, float)):
             return None                  # the lines found a neighbour, not the pushed object
@@ -472,6 +587,7 @@ class Assembly:
             measured, cov, t, _ = found
             if not self._drift_measurement(obj_id, measured, cov, t):
                 yield Msg("event", (f"{obj_id} moved on its own",), {"level": "warn"})
+            yield from self._emit_drift(t)
             measured = self._layout(measured, t)       # with the drift as now estimated
             self._observe(obj_id, measured.at, t, cov, angle=measured.angle)
             start = self.belief[obj_id]
@@ -547,6 +663,8 @@ class Assembly:
         image = yield Msg("full_scan", (pixels, region))
         image = replace(image, origin=(image.origin[0] - origin[0], image.origin[1] - origin[1]))
         t1 = yield Msg("clock")
+        yield Msg("emit", ("full_scan", {"t": t1, "height": image.height, "pixel_size": image.pixel_size,
+                                         "origin": image.origin}))
         self.times["full_scan"] += t1 - t0
         w0 = time.perf_counter()
         env = identify(image, tip_radius=self.plan_options.tip_radius)
@@ -608,6 +726,7 @@ class Assembly:
                         self._plan_start.update(self._starts(self.belief.environment(), extra))
             yield Msg("checkpoint", (self._checkpoint(ops, i),))
         self.wall["execute"] = time.perf_counter() - t_wall - self.wall["identify"] - self.wall["plan"]
+        yield Msg("emit", ("result", _result_doc(self._summary(env, first_plan))))
         return self._summary(env, first_plan)
 
     def _starts(self, env: Environment, ops: list[Operation]) -> dict[int, tuple]:
@@ -626,7 +745,7 @@ class Assembly:
         if in_slot(target, o, _tight(self.layout)) or used.get(o.id, 0) >= self.options.max_corrections:
             return []
         used[o.id] = used.get(o.id, 0) + 1
-        solo = replace(self.layout, targets=(target,))
+        solo = replace(self.layout, targets=(target,), tolerance=_tight(self.layout))
         # the other objects are only in the way here: no confidence, never assigned
         others = tuple(replace(b, confidence=0.0) for oid, b in self.belief.objects.items()
                        if oid != o.id and oid not in self.belief.lost)
@@ -672,3 +791,11 @@ def _tight(layout: Layout):
     """Half the layout's tolerance: correct what would be borderline."""
     t = layout.tolerance
     return replace(t, position=t.position * 0.6, angle=t.angle * 0.6)
+
+
+def _result_doc(s: RunSummary) -> dict:
+    """What the run did, for the run log."""
+    return {"assignment": [a.to_dict() for a in s.assignment], "unfilled": [u.to_dict() for u in s.unfilled],
+            "pushed": list(s.pushed), "counts": dict(vars(s.counts)), "times": dict(s.times),
+            "wall": dict(s.wall), "failures": [{"object": o, "cause": c} for o, c in s.failures],
+            "epoch": s.epoch, "origin": list(s.origin)}

@@ -146,3 +146,19 @@ def test_bad_queries_are_refused():
         m.record_move(1.0, math.inf, 0.0)
     with pytest.raises(ValueError, match="grid"):
         model(0, grid=0.0)
+
+
+def test_short_moves_carry_their_displacement_into_the_next_move():
+    """The simulator's move tracker: a move under min_step is not recorded and does not
+    restart the chain, so every displacement creeps (creep is linear in the step)."""
+    from nanoasm.world.params import CreepParams, DriftParams
+    from nanoasm.world.sim_stream import MoveTracker
+
+    m = DriftModel(DriftParams(velocity=(0.0, 0.0), random_walk=0.0),
+                   CreepParams(amplitude=0.01, tau=0.1, min_step=500.0), np.random.default_rng(0))
+    tracker = MoveTracker(m, np.zeros(2), stop_samples=1)
+    tracker.jump(1.0, np.array([300.0, 0.0]))       # too short: carried
+    tracker.jump(2.0, np.array([300.0, 400.0]))     # 500 from the chain's start: recorded
+    tracker.jump(3.0, np.array([900.0, 400.0]))     # 600 from there: recorded
+    assert m._moves_t == [2.0, 3.0]
+    assert np.allclose(m._moves_s, [(300.0, 400.0), (600.0, 0.0)])

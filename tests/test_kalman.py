@@ -770,3 +770,31 @@ def test_objects_moving_different_ways_are_not_a_drift_jump():
     assert not a.accepted and not b.accepted and not b.drift_jump
     c = f.measure(t + 60.0, v * (t + 60.0) + rng.normal(0, 1.0, 2), np.eye(2), label="c")
     assert c.accepted and not c.drift_jump
+
+
+def test_creeping_offset_follows_recorded_and_pending_moves():
+    """The DAC's drift prediction: thermal line plus the exact creep of recent moves,
+    old moves as a line through their value and rate (error under 0.2 nm over 5 s)."""
+    from nanoasm.drift.creep import CreepingOffset, creep_offset
+
+    p = CreepModelParams(amplitude=0.01, tau=0.1, min_step=500.0)
+    hist = CreepHistory(p)
+    moves = [(10.0, (2000.0, 0.0)), (80.0, (-1500.0, 900.0)), (118.0, (700.0, -600.0))]
+    for t, s in moves:
+        hist.record(t - 5.0, s)               # the history counts from an epoch 5 s later
+    pending = [(121.0, (0.0, 1200.0))]
+    pred = CreepingOffset((3.0, -2.0), (0.3, -0.2), 120.0, hist, epoch=5.0, pending=pending)
+    ts = np.linspace(120.0, 125.0, 51)
+    every = moves + pending
+    exact = np.array([creep_offset(t, [m[0] for m in every], [m[1] for m in every], 0.01, 0.1) for t in ts])
+    thermal = np.array([3.0, -2.0]) + (ts - 120.0)[:, None] * np.array([0.3, -0.2])
+    got = pred(ts)
+    assert got.shape == (51, 2) and np.isfinite(got).all()
+    assert np.abs(got - (thermal + exact)).max() < 0.2
+    # the pending travel's creep starts when it ends, not before
+    assert np.allclose(pred(np.array([120.5]))[0] - thermal[5],
+                       creep_offset(120.5, [m[0] for m in moves], [m[1] for m in moves], 0.01, 0.1),
+                       atol=0.2)
+    # later records do not change a prediction already made
+    hist.record(130.0, (5000.0, 0.0))
+    assert np.array_equal(pred(ts), got)

@@ -181,8 +181,10 @@ class MoveTracker:
 
     A move ends when XY stays on one DAC code for ``stop_samples`` samples (a slow push,
     whose code changes every few samples, stays one move); it is recorded at that sample
-    as the step from where the previous move ended (moves under ``[creep] min_step`` add
-    nothing).
+    as the step from where the last *recorded* move ended. A move shorter than
+    ``[creep] min_step`` is not recorded and does not restart the chain: its
+    displacement is carried into the next move, so every displacement creeps (creep is
+    linear in the step) and only its attribution time is coarsened.
     """
 
     def __init__(self, drift: DriftModel, start_xy: np.ndarray, stop_samples: int):
@@ -194,10 +196,13 @@ class MoveTracker:
     def jump(self, t: float, xy: np.ndarray) -> None:
         """The instrument itself took XY to ``xy`` at ``t`` (a scan line): the move from
         where the last one ended is recorded now, and XY counts as at rest there."""
-        d = np.asarray(xy, float) - self.start
-        self.drift.record_move(float(t), float(d[0]), float(d[1]))
-        self.start = np.asarray(xy, float).copy()
+        self._end(float(t), np.asarray(xy, float))
         self.still = self.stop
+
+    def _end(self, t: float, xy: np.ndarray) -> None:
+        d = xy - self.start
+        if self.drift.record_move(t, float(d[0]), float(d[1])):
+            self.start = xy.copy()
 
     def track(self, nm: np.ndarray, codes: np.ndarray, previous: np.ndarray, t: np.ndarray) -> None:
         """Samples ``codes`` (their nm ``nm`` and times ``t``) played after ``previous``."""
@@ -207,7 +212,5 @@ class MoveTracker:
         last_move = np.maximum.accumulate(np.where(still, -1, idx))
         count = np.where(last_move >= 0, idx - last_move, idx + 1 + self.still)
         for k in np.flatnonzero(count == self.stop):
-            d = nm[k, :2] - self.start
-            self.drift.record_move(float(t[k]), float(d[0]), float(d[1]))
-            self.start = nm[k, :2].copy()
+            self._end(float(t[k]), nm[k, :2])
         self.still = int(count[-1])
