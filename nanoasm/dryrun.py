@@ -100,6 +100,10 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     start_clock = sim.clock()
     assembly = Assembly(layout, options, plan_options)
     engine = RunEngine(sim, subscribers)
+    # run logs (RunLog) get the scene before and the truth after the run, from the harness alone
+    logs = [s for s in subscribers or () if hasattr(s, "sim_truth")]
+    for log in logs:
+        log.sim_scene(scene, sim.config, seed)
     initial_sample = sim.truth()
     summary = engine.run(assembly.procedure(sim.config))
     initial = _layout_frame(sim, summary, initial_sample)
@@ -107,6 +111,8 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     total = sim.clock() - start_clock
     t = summary.times
     ids = match_ids(summary.env.objects, initial)
+    for log in logs:
+        log.sim_truth(initial, final, ids, sim.clock())
     assignment = tuple(Assignment(a.target, ids.get(a.object, a.object)) for a in summary.assignment)
     report = Report(
         scene=scene_name, layout=layout_name, seed=seed,

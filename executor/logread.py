@@ -1,0 +1,192 @@
+"""Reading run logs back (complete, or cut short by a killed process).
+
+:func:`read_log` reads an MCAP run log record by record and stops at the first byte that
+does not make a whole record (a truncated or damaged file), keeping everything before
+it and flagging ``complete=False``. Protobuf messages (Foxglove schemas) are decoded with
+mcap-protobuf-support, JSON messages into Python values. :func:`last_checkpoint` gives
+the last procedure state a run logged, for resuming it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from nanoasm.errors import InputError
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+@dataclass(frozen=True)
+class LogMessage:
+    """One logged message: topic, schema name, instrument time (s) and decoded data (a
+    dict for JSON channels, a protobuf message for Foxglove schemas)."""
+
+    topic: str
+    schema: str
+    t: float
+    data: Any
+
+
+@dataclass
+class RunLogContents:
+    """What a run log holds, as far as it could be read."""
+
+    path: str
+    messages: list[LogMessage] = field(default_factory=list)
+    channels: dict[str, str] = field(default_factory=dict)        # topic -> schema name
+    attachments: dict[str, bytes] = field(default_factory=dict)   # name -> data (the last of a name)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    complete: bool = False
+    problem: str | None = None          # why reading stopped early (None when complete)
+    size: int = 0                       # bytes in the file
+    read_bytes: int = 0                 # bytes up to the last whole record
+
+    def topic(self, name: str) -> list[LogMessage]:
+        """The messages of a topic, in log order."""
+        return [m for m in self.messages if m.topic == name]
+
+    def last(self, name: str) -> LogMessage | None:
+        found = self.topic(name)
+        return found[-1] if found else None
+
+    def attachment_json(self, name: str) -> Any:
+        """An attachment parsed as JSON, or None (missing or unreadable)."""
+        raw = self.attachments.get(name)
+        if raw is None:
+            return None
+        try:
+            return json.loads(raw)
+        except ValueError:
+            return None
+
+    @property
+    def end_time(self) -> float | None:
+        """Latest instrument time of any message (s)."""
+        return max((m.t for m in self.messages), default=None)
+
+
+class _Counting:
+    """A binary file wrapper counting the bytes read (where reading stopped)."""
+
+    def __init__(self, fh):
+        self.fh = fh
+        self.count = 0
+
+    def read(self, n: int = -1) -> bytes:
+        data = self.fh.read(n)
+        self.count += len(data)
+        return data
+
+    def readinto(self, b) -> int:  # pragma: no cover - StreamReader uses read()
+        n = self.fh.readinto(b)
+        self.count += n or 0
+        return n
+
+
+def _records(fh, size: int) -> Iterator[Any]:
+    from mcap.stream_reader import StreamReader
+
+    # a record cannot be longer than the file: a garbled length stops the reading
+    return StreamReader(fh, validate_crcs=True, record_size_limit=max(size, 1)).records
+
+
+def read_log(path: str | os.PathLike, *, topics: set[str] | None = None) -> RunLogContents:
+    """Read ``path`` as far as it goes; ``topics`` limits which messages are decoded.
+
+    Raises :class:`InputError` when the file is missing, empty or not an MCAP file at all;
+    a file cut short anywhere after its first bytes is read up to the cut.
+    """
+    from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
+    from mcap_protobuf.decoder import DecoderFactory
+
+    src = str(path)
+    p = Path(path)
+    if not p.exists():
+        raise InputError(src, None, "no such file")
+    if p.is_dir():
+        raise InputError(src, None, "is a directory, not a file")
+    out = RunLogContents(src)
+    try:
+        out.size = p.stat().st_size
+        fh = open(p, "rb")
+    except OSError as exc:
+        raise InputError(src, None, f"cannot read: {exc.strerror or exc}") from None
+    with fh:
+        head = fh.read(len(MAGIC))
+        if not head:
+            raise InputError(src, None, "file is empty (the run wrote nothing)")
+        if not MAGIC.startswith(head):
+            raise InputError(src, None, "not an MCAP run log (bad magic bytes)")
+        if len(head) < len(MAGIC):
+            out.problem = "the log ends inside its first bytes"
+            out.read_bytes = len(head)
+            return out
+        fh.seek(0)
+        counting = _Counting(fh)
+        schemas: dict[int, Any] = {}
+        channels: dict[int, Any] = {}
+        decoders: dict[int, Any] = {}
+        protobuf = DecoderFactory()
+        try:
+            for rec in _records(counting, out.size):
+                if isinstance(rec, Schema):
+                    schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    channels[rec.id] = rec
+                    schema = schemas.get(rec.schema_id)
+                    out.channels[rec.topic] = schema.name if schema is not None else ""
+                elif isinstance(rec, Message):
+                    ch = channels.get(rec.channel_id)
+                    if ch is None:
+                        raise ValueError(f"message on unknown channel {rec.channel_id}")
+                    if topics is not None and ch.topic not in topics:
+                        continue
+                    schema = schemas.get(ch.schema_id)
+                    out.messages.append(LogMessage(ch.topic, schema.name if schema else "", rec.log_time / 1e9,
+                                                   _decode(ch, schema, rec.data, decoders, protobuf)))
+                elif isinstance(rec, Attachment):
+                    out.attachments[rec.name] = bytes(rec.data)
+                elif isinstance(rec, Metadata):
+                    out.metadata[rec.name] = dict(rec.metadata)
+                elif isinstance(rec, Footer):
+                    out.complete = True
+                out.read_bytes = counting.count
+            out.read_bytes = counting.count      # the closing magic bytes
+        except Exception as exc:  # noqa: BLE001 - any bad byte ends the readable prefix
+            out.complete = False
+            out.problem = _problem(exc, counting.count, out.size)
+    if out.complete and out.read_bytes < out.size:
+        out.complete, out.problem = False, f"{out.size - out.read_bytes} stray byte(s) after the footer"
+    return out
+
+
+def _problem(exc: Exception, at: int, size: int) -> str:
+    if at >= size:
+        return f"the log ends mid-record at byte {size}"
+    return f"unreadable from byte {at} of {size}: {type(exc).__name__}: {exc}"[:300]
+
+
+def _decode(channel, schema, data: bytes, decoders: dict, protobuf) -> Any:
+    enc = channel.message_encoding
+    if enc == "json":
+        return json.loads(bytes(data))
+    if enc == "protobuf":
+        fn = decoders.get(channel.id)
+        if fn is None:
+            fn = decoders[channel.id] = protobuf.decoder_for(enc, schema)
+        if fn is None:
+            raise ValueError(f"no protobuf schema for {channel.topic}")
+        return fn(bytes(data))
+    return bytes(data)
+
+
+def last_checkpoint(path: str | os.PathLike) -> dict | None:
+    """The last checkpoint a run logged (the procedure's state, as it was), or None."""
+    log = read_log(path, topics={"/checkpoint"})
+    last = log.last("/checkpoint")
+    return None if last is None else last.data

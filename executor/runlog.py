@@ -1,0 +1,482 @@
+"""Run logs: every dry-run and run as one MCAP file, written through foxglove-sdk.
+
+A :class:`RunLog` is a :class:`~nanoasm.executor.engine.RunEngine` subscriber. It turns
+the engine's topics into MCAP channels, with Foxglove's well-known protobuf schemas where
+one fits (``foxglove.Log``, ``foxglove.SceneUpdate``, ``foxglove.Grid``) and JSON with a
+JSON schema elsewhere; :data:`TOPICS` lists them. The same channels stream live over
+Foxglove's WebSocket protocol when a live port is given (bound to 127.0.0.1).
+
+Log times are the instrument's clock in nanoseconds. The file is written in chunks and
+flushed after every push, checkpoint, plan and scan, so a process killed at any moment
+leaves a readable prefix (:func:`nanoasm.executor.logread.read_log` reads it). Positions
+are in nm in the layout frame (``frame_id`` ``"layout"``) unless a topic says
+``scanner``; Foxglove's 3-D panel shows 1 nm as 1 m.
+
+Only what the executor knows goes into the log; the dry-run harness alone may add the
+simulated truth (:meth:`RunLog.sim_truth`, topics under ``/sim/``).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import platform
+import sys
+import time
+from dataclasses import asdict, is_dataclass
+from typing import Any
+
+import numpy as np
+
+#: The run log's format name (MCAP profile and metadata).
+FORMAT = "nanoasm.runlog/1"
+#: Every DAC chunk is logged at every ``DAC_EVERY``-th sample.
+DAC_EVERY = 50
+#: Push verdicts that mean the push failed (anything else, "pushing", went as planned).
+FAILED_VERDICTS = ("slipped", "stuck", "no_contact")
+
+# (topic, schema name, what it holds); JSON channels have schema names nanoasm.*
+TOPICS: tuple[tuple[str, str, str], ...] = (
+    ("/events", "foxglove.Log", "the run's log lines (info, warning, error)"),
+    ("/layout", "foxglove.SceneUpdate", "slots of the layout, keep-outs and the working area"),
+    ("/scan", "foxglove.Grid", "the full scan: heights (nm, float32) on the layout frame"),
+    ("/objects", "foxglove.SceneUpdate", "objects identified in the full scan"),
+    ("/plan/paths", "foxglove.SceneUpdate", "tip paths of the first plan"),
+    ("/belief", "foxglove.SceneUpdate", "the executor's belief: every object's believed pose, after each push"),
+    ("/tip_paths", "foxglove.SceneUpdate", "the tip path of every push as executed, coloured by verdict"),
+    ("/local_scan/lines", "foxglove.SceneUpdate", "the latest local-scan line, layout frame"),
+    ("/environment", "nanoasm.Environment", "identified objects and obstacles (nanoasm.env/1)"),
+    ("/plan", "nanoasm.Plan", "the first plan (nanoasm.plan/1)"),
+    ("/push", "nanoasm.Push", "each push: operation, verdict, peak force, start pose, belief after"),
+    ("/drift", "nanoasm.DriftEstimate", "drift estimate after each filter update, with covariance"),
+    ("/local_scan", "nanoasm.ScanLine", "each local-scan line: end points (scanner frame) and heights"),
+    ("/dac", "nanoasm.DacChunk", f"each DAC chunk written, every {DAC_EVERY}th sample: XYZ nm and signals"),
+    ("/checkpoint", "nanoasm.Checkpoint", "the procedure's state after each push, losslessly (for resume)"),
+    ("/result", "nanoasm.Result", "what the run did: assignment, unfilled slots, counts, times, failures"),
+    ("/stop", "nanoasm.Stop", "how the run ended: state and reason"),
+    ("/sim/truth", "nanoasm.SimTruth", "dry-runs only, from the harness: true objects before and after"),
+    ("/sim/truth/scene", "foxglove.SceneUpdate", "dry-runs only: the true objects after the run"),
+)
+
+#: Engine topic -> log topic of the JSON channel that keeps it as it is.
+_JSON_TOPICS = {"environment": "/environment", "plan": "/plan", "push": "/push", "drift": "/drift",
+                "scan_line": "/local_scan", "dac": "/dac", "checkpoint": "/checkpoint",
+                "result": "/result", "stop": "/stop"}
+#: Topics after which the file is flushed (a SIGKILL then loses nothing before them).
+_FLUSH_AFTER = {"environment", "plan", "push", "checkpoint", "result", "stop", "full_scan"}
+
+_LEVELS = {"debug": "Debug", "info": "Info", "warn": "Warning", "warning": "Warning",
+           "error": "Error", "fatal": "Fatal"}
+
+# colours (r, g, b, a)
+_TARGET = (0.2, 0.6, 1.0, 1.0)
+_KEEPOUT = (1.0, 0.3, 0.3, 1.0)
+_AREA = (0.6, 0.6, 0.6, 1.0)
+_OBJECT = (1.0, 0.8, 0.2, 1.0)
+_BELIEF = (0.3, 0.9, 0.4, 0.9)
+_TRUTH = (0.8, 0.4, 1.0, 0.9)
+_OK = (0.2, 0.9, 0.3, 1.0)
+_FAILED = (1.0, 0.2, 0.2, 1.0)
+_SCAN = (1.0, 1.0, 1.0, 1.0)
+
+
+def _plain(v: Any) -> Any:
+    """``json.dumps`` default: numpy values and arrays, dataclasses, sets, tuples as lists."""
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    if isinstance(v, (set, frozenset)):
+        return sorted(v)
+    if is_dataclass(v) and not isinstance(v, type):
+        return asdict(v)
+    raise TypeError(f"cannot log {type(v).__name__} as JSON")
+
+
+def to_json(doc: Any) -> bytes:
+    """The JSON bytes of a document, as logged (NaN kept, so nothing is lost)."""
+    return json.dumps(doc, default=_plain, separators=(",", ":")).encode("utf-8")
+
+
+def _ns(t: float | None) -> int:
+    return int(round(max(float(t), 0.0) * 1e9)) if t is not None and math.isfinite(t) else 0
+
+
+def _json_schema(name: str, description: str, required: tuple[str, ...] = ()) -> dict:
+    return {"title": name, "description": description, "type": "object",
+            "required": list(required)}
+
+
+#: JSON schemas of the custom channels (loose: the documents are the engine's own).
+_SCHEMAS = {
+    "nanoasm.Environment": _json_schema("nanoasm.Environment", "nanoasm.env/1", ("objects",)),
+    "nanoasm.Plan": _json_schema("nanoasm.Plan", "nanoasm.plan/1", ("operations",)),
+    "nanoasm.Push": _json_schema("nanoasm.Push", "one push", ("op", "verdict", "t")),
+    "nanoasm.DriftEstimate": _json_schema("nanoasm.DriftEstimate",
+                                          "drift offset (nm) and covariance (nm^2) at t", ("t", "offset")),
+    "nanoasm.ScanLine": _json_schema("nanoasm.ScanLine", "a local-scan line, scanner frame",
+                                     ("a", "b", "heights")),
+    "nanoasm.DacChunk": _json_schema("nanoasm.DacChunk", "a DAC chunk, downsampled", ("t", "x", "y", "z")),
+    "nanoasm.Checkpoint": _json_schema("nanoasm.Checkpoint", "procedure state", ("remaining", "belief")),
+    "nanoasm.Result": _json_schema("nanoasm.Result", "what the run did", ("counts",)),
+    "nanoasm.Stop": _json_schema("nanoasm.Stop", "how the run ended", ("state", "reason")),
+    "nanoasm.SimTruth": _json_schema("nanoasm.SimTruth", "simulated truth (harness only)", ("phase", "objects")),
+}
+
+
+def versions() -> dict[str, str]:
+    """Versions of what wrote the log."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from nanoasm import __version__
+
+    out = {"nanoasm": __version__, "python": platform.python_version(), "numpy": np.__version__}
+    for dist in ("foxglove-sdk", "mcap"):
+        try:
+            out[dist] = version(dist)
+        except PackageNotFoundError:  # pragma: no cover - both are dependencies
+            pass
+    return out
+
+
+class RunLog:
+    """Engine subscriber writing the run to ``path`` (MCAP) and/or streaming it live.
+
+    Parameters
+    ----------
+    path : str or path, optional
+        The MCAP file (overwritten). None: no file (live view only).
+    live_port : int, optional
+        Stream the same channels over Foxglove's WebSocket protocol on 127.0.0.1 at this
+        port (0: any free port; :attr:`port` tells which).
+    layout : Layout, optional
+        Attached as ``layout.json`` and drawn on ``/layout``.
+    metadata : dict, optional
+        Written as the MCAP metadata record ``nanoasm`` (strings), besides the versions.
+    attachments : dict, optional
+        ``name -> (media type, bytes)``, attached at the start (e.g. the instrument file).
+    truth : bool
+        A dry-run harness will add the simulated truth after a completed run
+        (:meth:`sim_truth`); the engine's ``close()`` then only flushes.
+    """
+
+    def __init__(self, path=None, *, live_port: int | None = None, layout=None,
+                 metadata: dict[str, Any] | None = None,
+                 attachments: dict[str, tuple[str, bytes]] | None = None, truth: bool = False):
+        import foxglove
+        from foxglove.mcap import MCAPCompression, MCAPWriteOptions
+
+        self._fg = foxglove
+        self.context = foxglove.Context()
+        self.path = None if path is None else str(path)
+        self.writer = None
+        self.server = None
+        self._closed = False
+        self._await_truth = truth
+        self._hold = False
+        self._t = 0.0                 # latest instrument time seen (s)
+        self._pushes = 0
+        self._plan_attached = False
+        if live_port is not None:
+            self.server = foxglove.start_server(name="nanoasm", host="127.0.0.1", port=live_port,
+                                                context=self.context)
+        if self.path is not None:
+            options = MCAPWriteOptions(compression=MCAPCompression.Zstd, profile=FORMAT,
+                                       compression_threads=0)
+            try:
+                self.writer = foxglove.open_mcap(self.path, allow_overwrite=True, context=self.context,
+                                                 writer_options=options)
+            except BaseException:
+                if self.server is not None:
+                    self.server.stop()
+                raise
+        self.channels = self._open_channels()
+        meta = {"format": FORMAT, **versions(), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        meta.update({k: str(v) for k, v in (metadata or {}).items() if v is not None})
+        self.metadata("nanoasm", meta)
+        for name, (media, data) in (attachments or {}).items():
+            self.attach(name, data, media)
+        if layout is not None:
+            self.attach("layout.json", layout.dumps_json().encode("utf-8"), "application/json")
+            self._log("/layout", self._layout_scene(layout), 0.0)
+        self.flush()
+
+    @property
+    def port(self) -> int | None:
+        """Port of the live server, if any."""
+        return None if self.server is None else self.server.port
+
+    def _open_channels(self) -> dict[str, Any]:
+        fg = self._fg
+        from foxglove import channels as fc
+
+        ctx = self.context
+        out: dict[str, Any] = {}
+        for topic, schema, _ in TOPICS:
+            if schema.startswith("foxglove."):
+                cls = getattr(fc, schema.split(".", 1)[1] + "Channel")
+                out[topic] = cls(topic, context=ctx)
+            else:
+                out[topic] = fg.Channel(topic, context=ctx, message_encoding="json",
+                                        schema=fg.Schema(name=schema, encoding="jsonschema",
+                                                         data=json.dumps(_SCHEMAS[schema]).encode()))
+        return out
+
+    # -- writing ------------------------------------------------------------------------
+    def _log(self, topic: str, msg: Any, t: float | None) -> None:
+        if self._closed:
+            return
+        if t is not None and math.isfinite(t):
+            self._t = max(self._t, float(t))
+        ch = self.channels[topic]
+        ch.log(to_json(msg) if isinstance(msg, (dict, list)) else msg, log_time=_ns(self._t if t is None else t))
+
+    def flush(self) -> None:
+        if self.writer is not None and not self._closed:
+            self.writer.flush()
+
+    def metadata(self, name: str, values: dict[str, str]) -> None:
+        """An MCAP metadata record (string values)."""
+        if self.writer is not None and not self._closed:
+            self.writer.write_metadata(name, {k: str(v) for k, v in values.items()})
+
+    def attach(self, name: str, data: bytes, media_type: str = "application/json") -> None:
+        """An MCAP attachment, stamped with the latest instrument time."""
+        if self.writer is not None and not self._closed:
+            ns = _ns(self._t)
+            self.writer.attach(log_time=ns, create_time=ns, name=name, media_type=media_type, data=data)
+
+    def __call__(self, topic: str, doc: dict) -> None:
+        """The engine's subscriber interface."""
+        if self._closed:
+            return
+        t = doc.get("t") if isinstance(doc, dict) else None
+        t = t if isinstance(t, (int, float)) else None
+        handler = getattr(self, "_on_" + topic, None)
+        if handler is not None:
+            handler(doc, t)
+        if topic in _JSON_TOPICS:
+            self._log(_JSON_TOPICS[topic], doc, t)
+        if topic in _FLUSH_AFTER:
+            self.flush()
+
+    def _on_event(self, doc: dict, t: float | None) -> None:
+        from foxglove.messages import Log, LogLevel
+
+        level = getattr(LogLevel, _LEVELS.get(str(doc.get("level", "info")), "Info"))
+        self._log("/events", Log(timestamp=self._stamp(t), level=level, message=str(doc.get("text", "")),
+                                 name="nanoasm"), t)
+
+    def _on_stop(self, doc: dict, t: float | None) -> None:
+        self._on_event({"level": "info" if doc.get("state") == "done" else "error",
+                        "text": f"run {doc.get('state')}: {doc.get('reason')}"}, t)
+        self._hold = self._await_truth and doc.get("state") == "done"
+
+    def _on_full_scan(self, doc: dict, t: float | None) -> None:
+        self._log("/scan", self._grid(doc, t), t)
+
+    def _on_environment(self, doc: dict, t: float | None) -> None:
+        self._log("/objects", self._bodies_scene(doc.get("objects", ()), "obj", _OBJECT, t), t)
+
+    def _on_plan(self, doc: dict, t: float | None) -> None:
+        if not self._plan_attached:
+            self._plan_attached = True
+            self.attach("plan.json", to_json(doc))
+        paths = [(f"op{op.get('id')}", op.get("tip_path") or ()) for op in doc.get("operations", ())]
+        self._log("/plan/paths", self._paths_scene(paths, (0.6, 0.6, 1.0, 0.6), t), t)
+
+    def _on_push(self, doc: dict, t: float | None) -> None:
+        self._pushes += 1
+        op = doc.get("op", {})
+        colour = _FAILED if doc.get("verdict") in FAILED_VERDICTS else _OK
+        self._log("/tip_paths", self._paths_scene([(f"push{self._pushes}", op.get("tip_path") or ())],
+                                                  colour, t), t)
+        belief = doc.get("belief")
+        if isinstance(belief, dict):
+            self._log("/belief", self._bodies_scene([belief], "obj", _BELIEF, t), t)
+
+    def _on_checkpoint(self, doc: dict, t: float | None) -> None:
+        belief = doc.get("belief") or {}
+        lost = set(belief.get("lost", ()))
+        objs = [o for o in belief.get("objects", ()) if o.get("id") not in lost]
+        self._log("/belief", self._bodies_scene(objs, "obj", _BELIEF, t, delete=sorted(lost)), t)
+
+    def _on_scan_line(self, doc: dict, t: float | None) -> None:
+        off = doc.get("offset")
+        if off is None:
+            return
+        a = np.asarray(doc["a"], float) - np.asarray(off, float)
+        b = np.asarray(doc["b"], float) - np.asarray(off, float)
+        self._log("/local_scan/lines", self._paths_scene([("line", (a.tolist(), b.tolist()))], _SCAN, t,
+                                                         thickness=4.0), t)
+
+    def sim_scene(self, scene, config, seed: int | None) -> None:
+        """Dry-run harness: attach the scene and the simulated instrument's configuration."""
+        self.attach("scene.json", scene.dumps_json().encode("utf-8"))
+        self.attach("instrument.json", to_json(config))
+        self.metadata("dry-run", {"seed": str(seed)})
+
+    def sim_truth(self, initial, final, ids: dict[str, str], t: float) -> None:
+        """Dry-run harness: the true objects (layout frame) before and after the run, and which
+        identified object each one is (``ids``: identified id -> scene id); then closes."""
+        for phase, bodies in (("initial", initial), ("final", final)):
+            doc = {"phase": phase, "objects": [b.to_dict() for b in bodies], "ids": ids}
+            self._log("/sim/truth", doc, t)
+        self._log("/sim/truth/scene", self._bodies_scene([b.to_dict() for b in final], "truth", _TRUTH, t), t)
+        self._hold = False
+        self.close()
+
+    def close(self) -> None:
+        """Finish the file and stop the live server (idempotent). After a completed run of a
+        dry-run that awaits the truth, the first call only flushes."""
+        if self._closed:
+            return
+        if self._hold:
+            self._hold = False
+            self.flush()
+            return
+        self._closed = True
+        try:
+            if self.writer is not None:
+                self.writer.close()
+        finally:
+            if self.server is not None:
+                self.server.stop()
+            for ch in self.channels.values():
+                ch.close()
+
+    # -- Foxglove messages --------------------------------------------------------------
+    def _stamp(self, t: float | None):
+        from foxglove.messages import Timestamp
+
+        ns = _ns(self._t if t is None else t)
+        return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+    def _grid(self, doc: dict, t: float | None):
+        from foxglove.messages import (Grid, PackedElementField, PackedElementFieldNumericType, Pose,
+                                       Quaternion, Vector2, Vector3)
+
+        h = np.ascontiguousarray(np.asarray(doc["height"], dtype="<f4"))
+        ny, nx = h.shape
+        px = float(doc["pixel_size"])
+        ox, oy = (float(v) for v in doc.get("origin", (0.0, 0.0)))
+        return Grid(timestamp=self._stamp(t), frame_id="layout",
+                    pose=Pose(position=Vector3(x=ox, y=oy, z=0.0), orientation=Quaternion(w=1.0)),
+                    column_count=nx, cell_size=Vector2(x=px, y=px), row_stride=4 * nx, cell_stride=4,
+                    fields=[PackedElementField(name="height", offset=0,
+                                               type=PackedElementFieldNumericType.Float32)],
+                    data=h.tobytes())
+
+    def _entity(self, ident: str, t: float | None, **primitives):
+        from foxglove.messages import SceneEntity
+
+        return SceneEntity(timestamp=self._stamp(t), frame_id="layout", id=ident, **primitives)
+
+    def _bodies_scene(self, bodies, prefix: str, colour, t: float | None, delete=()):
+        """Particles as spheres, rods and wires as boxes along their axis, with their ids."""
+        from foxglove.messages import (Color, CubePrimitive, SceneEntityDeletion, SceneUpdate,
+                                       SpherePrimitive, TextPrimitive, Vector3)
+
+        col = Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3])
+        entities = []
+        for b in bodies:
+            try:
+                x, y = (float(v) for v in b["at"])
+                d = float(b["diameter"])
+            except (KeyError, TypeError, ValueError):
+                continue
+            text = TextPrimitive(pose=_pose(x, y, d), billboard=True, font_size=12.0, scale_invariant=True,
+                                 color=col, text=str(b.get("id", "")))
+            if b.get("length") is not None and b.get("angle") is not None:
+                shape = {"cubes": [CubePrimitive(pose=_pose(x, y, d / 2, float(b["angle"])),
+                                                 size=Vector3(x=float(b["length"]), y=d, z=d), color=col)]}
+            else:
+                shape = {"spheres": [SpherePrimitive(pose=_pose(x, y, d / 2), size=Vector3(x=d, y=d, z=d),
+                                                     color=col)]}
+            entities.append(self._entity(f"{prefix}:{b.get('id')}", t, texts=[text], **shape))
+        deletions = [SceneEntityDeletion(timestamp=self._stamp(t), id=f"{prefix}:{i}") for i in delete]
+        return SceneUpdate(entities=entities, deletions=deletions)
+
+    def _paths_scene(self, paths, colour, t: float | None, thickness: float = 2.0):
+        from foxglove.messages import Color, LinePrimitive, LinePrimitiveLineType, SceneUpdate
+
+        col = Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3])
+        entities = []
+        for ident, pts in paths:
+            pts = [p for p in pts if len(p) >= 2]
+            if len(pts) < 2:
+                continue
+            line = LinePrimitive(type=LinePrimitiveLineType.LineStrip, pose=_pose(0.0, 0.0, 0.0),
+                                 thickness=thickness, scale_invariant=True,
+                                 points=[_point(p[0], p[1], 1.0) for p in pts], color=col)
+            entities.append(self._entity(ident, t, lines=[line]))
+        return SceneUpdate(entities=entities)
+
+    def _layout_scene(self, layout):
+        """Slots as outlines (circles, capsules), keep-outs, and the working area."""
+        from foxglove.messages import Color, LinePrimitive, LinePrimitiveLineType, SceneUpdate, TextPrimitive
+
+        def loop(pts, colour):
+            return LinePrimitive(type=LinePrimitiveLineType.LineLoop, pose=_pose(0.0, 0.0, 0.0), thickness=2.0,
+                                 scale_invariant=True, points=[_point(x, y, 0.0) for x, y in pts],
+                                 color=Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3]))
+
+        w, h = layout.area
+        entities = [self._entity("area", 0.0, lines=[loop([(0, 0), (w, 0), (w, h), (0, h)], _AREA)])]
+        for tg in layout.targets:
+            ring = tg.geometry().buffer(tg.radius, quad_segs=12).exterior.coords[:-1]
+            label = TextPrimitive(pose=_pose(tg.at[0], tg.at[1], 0.0), billboard=True, font_size=12.0,
+                                  scale_invariant=True, text=tg.id,
+                                  color=Color(r=_TARGET[0], g=_TARGET[1], b=_TARGET[2], a=1.0))
+            entities.append(self._entity(f"slot:{tg.id}", 0.0, lines=[loop(ring, _TARGET)], texts=[label]))
+        for i, k in enumerate(layout.keepouts, 1):
+            entities.append(self._entity(f"keepout:{i}", 0.0, lines=[loop(k.polygon, _KEEPOUT)]))
+        return SceneUpdate(entities=entities)
+
+
+def open_run_log(path=None, *, live_port: int | None = None, **kwargs) -> RunLog:
+    """A :class:`RunLog` for the command line: a bad path or port is an InputError."""
+    from pathlib import Path
+
+    from nanoasm.errors import InputError
+
+    if path is not None:
+        p = Path(path)
+        if p.suffix.lower() != ".mcap":
+            raise InputError(str(path), None, "run log must end in .mcap")
+        if not (p.parent if str(p.parent) else Path(".")).is_dir():
+            raise InputError(str(path), None, f"output folder {str(p.parent)!r} does not exist")
+        if p.is_dir():
+            raise InputError(str(path), None, "is a directory, not a file")
+    if live_port is not None and not 0 <= live_port <= 65535:
+        raise InputError(None, "--live-port", f"must be a port number 0-65535, got {live_port}")
+    try:
+        return RunLog(path, live_port=live_port, **kwargs)
+    except OSError as exc:
+        raise InputError(str(path), None, f"cannot write: {exc.strerror or exc}") from None
+    except RuntimeError as exc:    # foxglove: the port is taken
+        if live_port is None:
+            raise
+        raise InputError(None, "--live-port", f"cannot serve on 127.0.0.1:{live_port}: {exc}") from None
+
+
+def _point(x: float, y: float, z: float):
+    from foxglove.messages import Point3
+
+    return Point3(x=float(x), y=float(y), z=float(z))
+
+
+def _pose(x: float, y: float, z: float, angle_deg: float = 0.0):
+    """A pose at (x, y, z) turned by ``angle_deg`` about +z."""
+    from foxglove.messages import Pose, Quaternion, Vector3
+
+    half = math.radians(angle_deg) / 2
+    return Pose(position=Vector3(x=float(x), y=float(y), z=float(z)),
+                orientation=Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)))
+
+
+def command_line() -> str:
+    """The command line of this process, as typed (for the log's metadata)."""
+    import shlex
+
+    return " ".join(shlex.quote(a) for a in ["nanoasm", *sys.argv[1:]])
