@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -321,6 +322,34 @@ def _with_progress(label: str, work):
 
 # -- dry-run --------------------------------------------------------------------------
 
+LogFile = Annotated[Optional[Path], typer.Option("--log", help="Write the run log here (MCAP with Foxglove "
+                                                 "schemas; nanoasm review reads it, Foxglove opens it).")]
+Live = Annotated[bool, typer.Option("--live", help="Stream the run live over Foxglove's WebSocket "
+                                    "protocol on 127.0.0.1 (open it in Foxglove).")]
+LivePort = Annotated[int, typer.Option("--live-port", help="Port of the --live stream.")]
+
+
+@contextmanager
+def _run_logs(path: Path | None, live: bool, port: int, layout, metadata: dict, **options):
+    """The run log and live stream as a list of engine subscribers (empty without --log and
+    --live); closed on the way out, whatever happens. ``options`` go to the RunLog."""
+    if path is None and not live:
+        yield []
+        return
+    from nanoasm.executor.runlog import command_line, open_run_log
+
+    log = open_run_log(path, live_port=port if live else None, layout=layout,
+                       metadata={**metadata, "command": command_line()}, **options)
+    if log.server is not None:
+        print(f"live: ws://127.0.0.1:{log.port} (Foxglove: Open connection > Foxglove WebSocket)", file=sys.stderr)
+    try:
+        yield [log]
+    finally:
+        log.close()
+        if path is not None:
+            print(f"{path}: written", file=sys.stderr)
+
+
 @app.command("dry-run")
 def dry_run_cmd(
     scene_file: Annotated[Optional[Path], typer.Argument(metavar="SCENE", help="Scene (default: the "
@@ -333,6 +362,9 @@ def dry_run_cmd(
     report: Annotated[Optional[Path], typer.Option(help="Write the report (JSON) here.")] = None,
     planner: Annotated[str, typer.Option(help="OMPL planner for detours.")] = "rrtconnect",
     time_budget: Annotated[float, typer.Option(help="Seconds OMPL may spend on one path.")] = 1.0,
+    log: LogFile = None,
+    live: Live = False,
+    live_port: LivePort = 8765,
 ) -> None:
     """Assemble LAYOUT in a simulated world holding SCENE, exactly as a real run would."""
     from nanoasm.cad.layout import load_layout
@@ -360,9 +392,12 @@ def dry_run_cmd(
     layout = load_layout(layout_file)
     options = ExecOptions(strategy=strategy)
     plan_options = PlanOptions(planner=planner, time_budget=time_budget, seed=seed or 0)
-    outcome = _with_run_progress(lambda subs: dry_run(
-        scene, layout, seed=seed, options=options, plan_options=plan_options, subscribers=subs,
-        scene_name=str(scene_file), layout_name=str(layout_file)))
+    meta = {"kind": "dry-run", "strategy": strategy, "seed": seed, "scene": str(scene_file),
+            "layout": str(layout_file)}
+    with _run_logs(log, live, live_port, layout, meta, truth=True) as logs:
+        outcome = _with_run_progress(lambda subs: dry_run(
+            scene, layout, seed=seed, options=options, plan_options=plan_options, subscribers=[*subs, *logs],
+            scene_name=str(scene_file), layout_name=str(layout_file)))
     rep = outcome.report
     if report is not None:
         rep.save(report)
@@ -377,6 +412,9 @@ def run_cmd(
     instrument: Annotated[Path, typer.Option(help="Instrument file (nanoasm.instrument/1).")],
     strategy: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full or anchor.")] = "full",
     report: Annotated[Optional[Path], typer.Option(help="Write the report (JSON) here.")] = None,
+    log: LogFile = None,
+    live: Live = False,
+    live_port: LivePort = 8765,
 ) -> None:
     """Assemble LAYOUT unattended on the instrument described by --instrument (NI-DAQmx)."""
     from nanoasm.cad.layout import load_layout
@@ -394,9 +432,14 @@ def run_cmd(
     layout = load_layout(layout_file)
     config = load_instrument_config(instrument)
     assembly = Assembly(layout, ExecOptions(strategy=strategy))
-    with NiDaqInstrument(config) as inst:
+    meta = {"kind": "run", "strategy": strategy, "layout": str(layout_file), "instrument": str(instrument)}
+    suffix = instrument.suffix.lower()
+    attach = {"instrument" + suffix: ("application/" + suffix.lstrip("."), instrument.read_bytes())}
+    with (NiDaqInstrument(config) as inst,
+          _run_logs(log, live, live_port, layout, meta, attachments=attach) as logs):
         t0 = inst.clock()
-        summary = _with_run_progress(lambda subs: RunEngine(inst, subs).run(assembly.procedure(inst.config)))
+        summary = _with_run_progress(lambda subs: RunEngine(inst, [*subs, *logs]).run(
+            assembly.procedure(inst.config)))
         total = inst.clock() - t0
     t = summary.times
     from nanoasm.bodies import Body
@@ -457,6 +500,26 @@ def _print_summary(layout, outcome) -> None:
     for tid in missed:
         table.add_row(f"missed {tid}", f"{outcome.errors.get(tid, float('nan')):.1f} nm off")
     Console().print(table)
+
+
+# -- review ---------------------------------------------------------------------------
+
+@app.command("review")
+def review_cmd(
+    log_file: Annotated[Path, typer.Argument(metavar="LOG", help="Run log (.mcap) of a dry-run or run.")],
+    plot: Annotated[Optional[Path], typer.Option(help="Also plot the run here (.png, .svg or .pdf): "
+                                                      "before/after scene, push paths, drift.")] = None,
+) -> None:
+    """Summarise a run log: slots filled, errors, pushes, failures, instrument time, drift."""
+    from nanoasm.review import plot_review, print_review, review
+
+    if plot is not None and plot.suffix.lower() not in (".png", ".svg", ".pdf"):
+        raise InputError(str(plot), None, "plot must end in .png, .svg or .pdf")
+    rev = review(log_file)
+    print_review(rev)
+    if plot is not None:
+        plot_review(rev, plot)
+        print(f"{plot}: written")
 
 
 # -- entry point --------------------------------------------------------------------
