@@ -502,6 +502,88 @@ def _print_summary(layout, outcome) -> None:
     Console().print(table)
 
 
+# -- sweeps ---------------------------------------------------------------------------
+
+@app.command("sweep")
+def sweep_cmd(
+    families: Annotated[str, typer.Option(help="Scene families, comma-separated: tiny, sparse, dense, "
+                                               "rods, mixed, or all.")] = "sparse,dense,rods,mixed",
+    seeds: Annotated[str, typer.Option(help="Seeds: numbers and ranges, e.g. 1-5 or 1,4,9.")] = "1-3",
+    strategies: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full, anchor "
+                                                 "(comma-separated), or all.")] = "full",
+    drift: Annotated[str, typer.Option(help="Steady drift speeds, nm/s, comma-separated.")] = "0.3",
+    knob: Annotated[Optional[list[str]], typer.Option(metavar="NAME=V1,V2", help="Also run each value of "
+                    "one knob (an ExecOptions or PlanOptions field), the others at their defaults; "
+                    "repeatable.")] = None,
+    workers: Annotated[Optional[int], typer.Option(help="Local worker processes (default: the CPU "
+                                                        "count).")] = None,
+    scheduler: Annotated[Optional[str], typer.Option(metavar="ADDRESS", help="dask.distributed "
+                         "scheduler, e.g. tcp://10.0.0.5:8786: run there instead.")] = None,
+    output: Annotated[Optional[Path], typer.Option("-o", "--output", help="Write every run's row "
+                                                   "here (.csv or .json).")] = None,
+) -> None:
+    """Dry-run generated scene families over seeds, strategies and knobs in parallel; one table."""
+    from nanoasm import sweep as sw
+    from nanoasm.executor.strategy import STRATEGIES
+    from nanoasm.world.families import FAMILIES
+
+    def parsed(option: str, fn, *args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except ValueError as exc:
+            raise cx.BadParameter(str(exc), param_hint=f"'{option}'") from None
+
+    fams = parsed("--families", sw.parse_names, families, tuple(FAMILIES), "family")
+    strats = parsed("--strategies", sw.parse_names, strategies, STRATEGIES, "strategy")
+    seed_list = parsed("--seeds", sw.parse_seeds, seeds)
+    drifts = parsed("--drift", sw.parse_numbers, drift, "drift speeds")
+    knobs = dict(parsed("--knob", sw.parse_knob, k) for k in knob or ())
+    cases = parsed("--knob", sw.grid, fams, seed_list, strats, drifts=drifts, knobs=knobs)
+    if workers is not None and workers < 1:
+        raise cx.BadParameter(f"must be at least 1, got {workers}", param_hint="'--workers'")
+    if output is not None:
+        if output.suffix.lower() not in (".csv", ".json"):
+            raise cx.BadParameter("must end in .csv or .json", param_hint="'-o'")
+        if not (output.parent if str(output.parent) else Path(".")).is_dir():
+            raise InputError(str(output), None, f"output folder {str(output.parent)!r} does not exist")
+    try:
+        rows = _with_progress(f"sweep: {len(cases)} dry-run(s)", lambda progress: sw.sweep(
+            cases, workers=workers, scheduler=scheduler, progress=progress))
+    except sw.Interrupted as stop:
+        if output is not None and stop.rows:
+            sw.write_table(stop.rows, output)
+        kept = f"; their rows written to {output}" if output is not None and stop.rows else ""
+        # typer turns KeyboardInterrupt into a silent exit 0 here: say it and exit 130
+        interrupted = cx.ClickException(f"interrupted after {len(stop.rows)} of {stop.total} dry-run(s){kept}")
+        interrupted.exit_code = 130
+        raise interrupted from None
+    if output is not None:
+        sw.write_table(rows, output)
+    _print_sweep(rows, sw.medians(rows))
+    failed = [r for r in rows if r["error"]]
+    for r in failed[:5]:
+        print(f"sweep: {r['case']}: {r['error']}", file=sys.stderr)
+    if output is not None:
+        print(f"{output}: written: {len(rows)} row(s), {len(failed)} failed")
+
+
+def _print_sweep(rows, groups) -> None:
+    from rich.console import Console
+    from rich.table import Table as RichTable
+
+    table = RichTable(title=f"sweep: {len(rows)} dry-run(s), medians over seeds")
+    cols = ("family", "drift", "strategy", "knob", "runs", "fill_rate", "rms_error_nm",
+            "per_filled_slot_s", "bound_s", "ratio_after_scan")
+    heads = ("family", "drift nm/s", "strategy", "knob", "runs", "fill", "RMS nm (filled)",
+             "s per filled slot", "bound s", "(T - scan) / bound")
+    for h in heads:
+        table.add_column(h)
+    for g in groups:
+        table.add_row(*("-" if g[c] is None else f"{g[c]:.3g}" if isinstance(g[c], float) else str(g[c])
+                        for c in cols))
+    Console(width=None if sys.stdout.isatty() else 160).print(table)
+
+
 # -- review ---------------------------------------------------------------------------
 
 @app.command("review")
