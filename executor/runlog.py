@@ -49,8 +49,10 @@ TOPICS: tuple[tuple[str, str, str], ...] = (
     ("/plan", "nanoasm.Plan", "the first plan (nanoasm.plan/1)"),
     ("/push", "nanoasm.Push", "each push: operation, verdict, peak force, start pose, belief after"),
     ("/drift", "nanoasm.DriftEstimate", "drift estimate after each filter update, with covariance"),
-    ("/local_scan", "nanoasm.ScanLine", "each local-scan line: end points (scanner frame) and heights"),
-    ("/dac", "nanoasm.DacChunk", f"each DAC chunk written, every {DAC_EVERY}th sample: XYZ nm and signals"),
+    ("/local_scan", "nanoasm.ScanLine", "each local-scan line: end points (scanner frame) and heights, "
+     "to 1e-6"),
+    ("/dac", "nanoasm.DacChunk", f"each DAC chunk of a push, every {DAC_EVERY}th sample: time, XYZ nm "
+     "(scanner frame), sample kind, photodiode signals S_n, S_l; to 1e-6"),
     ("/checkpoint", "nanoasm.Checkpoint", "the procedure's state after each push, losslessly (for resume)"),
     ("/result", "nanoasm.Result", "what the run did: assignment, unfilled slots, counts, times, failures"),
     ("/stop", "nanoasm.Stop", "how the run ended: state and reason"),
@@ -62,6 +64,10 @@ TOPICS: tuple[tuple[str, str, str], ...] = (
 _JSON_TOPICS = {"environment": "/environment", "plan": "/plan", "push": "/push", "drift": "/drift",
                 "scan_line": "/local_scan", "dac": "/dac", "checkpoint": "/checkpoint",
                 "result": "/result", "stop": "/stop"}
+#: Bulky sampled topics whose numbers are logged to ``_DIGITS`` decimals (µs, pm, µV):
+#: full precision would triple the log for digits below the noise.
+_ROUNDED = {"scan_line", "dac"}
+_DIGITS = 6
 #: Topics after which the file is flushed (a SIGKILL then loses nothing before them).
 _FLUSH_AFTER = {"environment", "plan", "push", "checkpoint", "result", "stop", "full_scan"}
 
@@ -91,6 +97,17 @@ def _plain(v: Any) -> Any:
     if is_dataclass(v) and not isinstance(v, type):
         return asdict(v)
     raise TypeError(f"cannot log {type(v).__name__} as JSON")
+
+
+def _rounded(doc: Any) -> Any:
+    """``doc`` with every float rounded to ``_DIGITS`` decimals."""
+    if isinstance(doc, float):
+        return round(doc, _DIGITS)
+    if isinstance(doc, dict):
+        return {k: _rounded(v) for k, v in doc.items()}
+    if isinstance(doc, (list, tuple)):
+        return [_rounded(v) for v in doc]
+    return doc
 
 
 def to_json(doc: Any) -> bytes:
@@ -256,7 +273,7 @@ class RunLog:
         if handler is not None:
             handler(doc, t)
         if topic in _JSON_TOPICS:
-            self._log(_JSON_TOPICS[topic], doc, t)
+            self._log(_JSON_TOPICS[topic], _rounded(doc) if topic in _ROUNDED else doc, t)
         if topic in _FLUSH_AFTER:
             self.flush()
 
