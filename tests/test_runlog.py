@@ -42,9 +42,15 @@ def test_every_topic_is_written_and_read_back(logged):
         assert all(m.schema == schema for m in msgs)
     # the JSON topics hold exactly what the procedure emitted
     for engine_topic, topic in (("environment", "/environment"), ("plan", "/plan"), ("push", "/push"),
-                                ("drift", "/drift"), ("scan_line", "/local_scan"), ("dac", "/dac"),
-                                ("checkpoint", "/checkpoint"), ("result", "/result"), ("stop", "/stop")):
+                                ("drift", "/drift"), ("checkpoint", "/checkpoint"), ("result", "/result"),
+                                ("stop", "/stop")):
         assert [m.data for m in log.topic(topic)] == rec.topic(engine_topic), topic
+    # sampled topics to 1e-6
+    for engine_topic, topic, key in (("scan_line", "/local_scan", "heights"), ("dac", "/dac", "s_n")):
+        logged_docs, sent = [m.data for m in log.topic(topic)], rec.topic(engine_topic)
+        assert len(logged_docs) == len(sent) and [set(d) for d in logged_docs] == [set(d) for d in sent]
+        for a, b in zip(logged_docs, sent):
+            assert a[key] == pytest.approx(b[key], abs=1e-6) and a["t"] == pytest.approx(b["t"], abs=1e-6)
     # Foxglove messages decode to what was logged
     texts = [m.data.message for m in log.topic("/events")]
     assert [d["text"] for d in rec.topic("event")] == texts[:-1] and texts[-1] == "run done: completed"
@@ -114,6 +120,16 @@ def test_the_channel_list_is_stable(logged):
                 rows[r.topic] = [r.topic, r.message_encoding, schemas[r.schema_id].name,
                                  schemas[r.schema_id].encoding]
     assert sorted(rows.values()) == json.loads(GOLDEN.read_text())
+
+
+def test_the_readme_lists_every_topic_with_its_schema():
+    readme = (Path(__file__).parent.parent / "README.md").read_text()
+    rows = {}
+    for line in readme.splitlines():
+        if line.startswith("| `/"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            rows[cells[0].strip("`")] = cells[1]
+    assert rows == {t: s for t, s, _ in TOPICS}
 
 
 def test_a_log_cut_anywhere_is_read_and_reviewed_as_far_as_it_goes(logged, tmp_path):
