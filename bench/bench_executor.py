@@ -279,7 +279,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{'met' if dac >= DAC_TARGET else 'missed'})",
         f"- instrument time (less the full scan) over the physical bound of the first plan: "
         f"median **{statistics.median(r['ratio'] for r in rows):.2f}** ({_med(rows, 'ratio')}); per filled slot "
-        f"{_med(rows, 'ratio_slot')}",
+        f"{_med(rows, 'ratio_slot')}; of the instrument time above the bound, the simulator's tapping/contact "
+        f"mode switches take {_share(rows, 'switch')} %, settling before scan lines {_share(rows, 'settle')} %, "
+        "and the rest (scan lines longer and more numerous than the minimum, reference and bootstrap scans "
+        f"of the drift filter, re-pushes, lowering and lifting) {_share(rows, None)} % (medians)",
         "",
         "## Per run",
         "",
@@ -338,6 +341,16 @@ def revision() -> str:
     except OSError:
         return "unknown"
     return (rev + (" with uncommitted changes" if dirty else "")) if rev else "unknown"
+
+
+def _share(rows, key) -> str:
+    """Median percentage of the instrument time above the bound taken by ``key`` (None: the rest)."""
+    shares = []
+    for r in rows:
+        excess = r["it"].total - r["it"].full_scan - r["bound"].total_s
+        part = excess - r["switch"] - r["settle"] if key is None else r[key]
+        shares.append(100.0 * part / excess)
+    return f"{statistics.median(shares):.0f}"
 
 
 def _scaled(rows, key, scale) -> str:
