@@ -65,7 +65,8 @@ _JSON_TOPICS = {"environment": "/environment", "plan": "/plan", "push": "/push",
                 "scan_line": "/local_scan", "dac": "/dac", "checkpoint": "/checkpoint",
                 "result": "/result", "stop": "/stop"}
 #: Bulky sampled topics whose numbers are logged to ``_DIGITS`` decimals (µs, pm, µV):
-#: full precision would triple the log for digits below the noise.
+#: full precision doubles them (bowtie dry-run: /local_scan 722 -> 356 kB, /dac 120 -> 75 kB
+#: before compression) for digits below the noise.
 _ROUNDED = {"scan_line", "dac"}
 _DIGITS = 6
 #: Topics after which the file is flushed (a SIGKILL then loses nothing before them).
