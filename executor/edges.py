@@ -161,10 +161,12 @@ def fit_baseline(profile, spacing: float, height: float, *, band: float = 0.15,
     guard = math.ceil(band * height / spacing)
     base = np.full(n, np.percentile(z, 2.0))
     substrate = np.ones(n, bool)
-    for _ in range(iterations):
+    for it in range(iterations):
         sub = ~_dilate(z - base > band * height, guard)
         if sub.sum() < 3:
             break
+        if it and np.array_equal(sub, substrate):
+            break                           # the same samples: the fit would not change
         xs = x[sub]
         if xs.max() - xs.min() >= 0.1 * (n - 1):
             slope, icpt = np.polyfit(xs, z[sub], 1)
