@@ -243,6 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     command = "python " + " ".join(shlex.quote(a) for a in [os.path.relpath(__file__), *(argv or sys.argv[1:])])
     options = ExecOptions()
+    load0 = os.getloadavg()[0]
 
     rows = []
     for name, seed, scene, layout in workloads(args.bowtie_seeds, args.random_seeds, args.particles):
@@ -262,7 +263,8 @@ def main(argv: list[str] | None = None) -> int:
         f"Command: `{command}`  ",
         f"Date: {datetime.date.today().isoformat()}; code: {revision()}  ",
         f"Machine: {machine}; Python {platform.python_version()}, NumPy {np.__version__}; "
-        "shared with other jobs, so wall times are noisy: medians (min-max) of one run.",
+        f"shared with other jobs (load average {load0:.1f} at the start, {os.getloadavg()[0]:.1f} at the end), "
+        "so wall times are noisy: medians (min-max) of one run.",
         "",
         f"Dry-runs, strategy `{options.strategy.value}`: the bundled bowtie example, and generated scenes "
         f"of {args.particles} particles (70-110 nm) on 5 x 5 µm with a 2 x 3 grid of 90 nm slots "
