@@ -7,8 +7,8 @@ executor drives it exactly as it drives hardware, through ``write``, ``full_scan
 Frames. The *sample frame* is the scene's (and the layout's) frame. The *scanner frame*
 is the DAC's (see :mod:`nanoasm.world.instrument`): a sample point ``p`` lies under the
 scanner position ``p + d(t)``, ``d`` the drift offset of
-:class:`~nanoasm.world.drift_model.DriftModel` (zero at instrument time 0, the run's
-first scan). The deflected tip sits at ``piezo + R(ψ)⁻¹ δ`` (eq. 3.30-3.34).
+:class:`~nanoasm.world.drift_model.DriftModel` (zero at the clock's start time, 0 unless
+given, before the run's first scan). The deflected tip sits at ``piezo + R(ψ)⁻¹ δ`` (eq. 3.30-3.34).
 
 Contact rule. The tip touches the substrate when the commanded ``z ≤ 0`` (``z = -preload``
 while pushing); the lever then presses with ``k (H - z)`` nN, H the height of what the
@@ -90,12 +90,15 @@ class SimulatedAFM:
     params : WorldParams, optional
         Physical parameters; defaults to ``scene.params``.
     placement : (x, y), optional
-        Where the scene's origin lies in the scanner frame at t = 0 (nm); by default the
-        scene is centred in the scanner's XY range.
+        Where the scene's origin lies in the scanner frame at the start (nm); by default
+        the scene is centred in the scanner's XY range.
+    start_time : float
+        Instrument time (s) of the clock at the start, e.g. an instrument that counts
+        from its boot; the world does the same from any start.
     """
 
     def __init__(self, scene: Scene, *, seed: int | None = None, params: WorldParams | None = None,
-                 placement: tuple[float, float] | None = None):
+                 placement: tuple[float, float] | None = None, start_time: float = 0.0):
         self.scene = scene
         self.params = scene.params if params is None else params
         if not isinstance(self.params, WorldParams):
@@ -107,13 +110,13 @@ class SimulatedAFM:
         ss = np.random.SeedSequence(scene.seed if seed is None else seed)
         self.seed = ss.entropy          # the seed given, or the fresh entropy drawn: reruns the world
         rng = dict(zip(_STREAMS, (np.random.default_rng(s) for s in ss.spawn(len(_STREAMS)))))
-        self._clock = InstrumentClock(self.params.timing)
+        self._clock = InstrumentClock(self.params.timing, start_time)
         # the sample sits centred under the scanner's range, as a user would place it
         if placement is None:
             placement = (0.5 * (cfg.xy_range[0] - scene.area[0]), 0.5 * (cfg.xy_range[1] - scene.area[1]))
         self.placement = (float(placement[0]), float(placement[1]))
-        self._drift = PlacedDrift(DriftModel(self.params.drift, self.params.creep, rng["drift"], epoch=0.0),
-                                  self.placement)
+        self._drift = PlacedDrift(DriftModel(self.params.drift, self.params.creep, rng["drift"],
+                                             epoch=self._clock.now), self.placement)
         table, units, groups, wires = build_objects(scene.objects, self.params, rng["truth"])
         self._world = PushPhysics(table, units, groups, wires, self.params, scene.obstacles,
                                   rng["faults"], rng["vdw"])
@@ -136,7 +139,8 @@ class SimulatedAFM:
         return self.params.scanner
 
     def clock(self) -> float:
-        """Instrument time in seconds (starts at 0; advances only by what the instrument does)."""
+        """Instrument time in seconds (starts at ``start_time``; advances only by what the
+        instrument does)."""
         return self._clock.now
 
     def ledger(self) -> dict[str, float]:
