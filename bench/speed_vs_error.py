@@ -6,7 +6,8 @@ Dry-runs (``nanoasm.sweep``) of the scene families of ``nanoasm.world.families``
 - every strategy at the default knobs, drift 0.3 nm/s;
 - the ``full`` strategy with one knob at a time moved off its default (scan-line length
   factor, reference-scan interval, push speed, rod push step, the drift filter's two
-  process noises, the replanning threshold, the planner's time budget);
+  process noises, the replanning threshold, the planner's time budget), to the
+  multiples of its default in ``FACTORS``;
 - every strategy at drift 0.05 and 1 nm/s.
 
 Writes the medians over seeds as tables with the physical bound of each family
@@ -31,22 +32,25 @@ import time
 from pathlib import Path
 
 from nanoasm import sweep as sw
-from nanoasm.executor.strategy import STRATEGIES
+from nanoasm.executor.strategy import STRATEGIES, ExecOptions
+from nanoasm.planner.options import PlanOptions
 from nanoasm.world.families import DEFAULT_DRIFT
 
 FAMILIES = ("sparse", "dense", "rods", "mixed")
 SEEDS = (1, 2, 3)
-#: One knob at a time around its default, strategy full (names: ExecOptions / PlanOptions).
-KNOBS = {
+#: One knob at a time, strategy full: these multiples of its default (ExecOptions / PlanOptions).
+FACTORS = {
     "line_factor": (0.5, 2.0),          # scan-line length factor
-    "reference_every": (30.0, 600.0),   # s between drift reference scans
-    "push_speed": (100.0, 400.0),       # nm/s
-    "rod_swing": (10.0, 40.0),          # rod push step, degrees per push
-    "drift_q": (1e-8, 1e-4),            # Kalman process noise on the drift velocity, nm²/s³
+    "reference_every": (0.25, 5.0),     # s between drift reference scans
+    "push_speed": (0.5, 2.0),           # nm/s
+    "rod_swing": (0.5, 2.0),            # rod push step, degrees per push
+    "drift_q": (0.01, 100.0),           # Kalman process noise on the drift velocity, nm²/s³
     "drift_q_offset": (0.1, 10.0),      # Kalman process noise on the offset, nm²/s
-    "replan_after": (30.0, 240.0),      # nm off course before replanning
+    "replan_after": (0.5, 4.0),         # nm off course before replanning
     "time_budget": (0.2, 5.0),          # s of OMPL per path
 }
+KNOBS = {k: tuple(float(f"{f * getattr(ExecOptions() if k in sw.EXEC_KNOBS else PlanOptions(), k):.6g}")
+                  for f in fs) for k, fs in FACTORS.items()}
 DRIFTS = (0.05, 1.0)
 QUICK = dict(families=("tiny", "sparse"), seeds=(1,), knobs={k: v[:1] for k, v in KNOBS.items()}, drifts=(1.0,))
 STYLE = {"open-loop": "tab:red", "local-scan": "tab:orange", "kalman": "tab:blue", "full": "tab:green",
@@ -156,6 +160,7 @@ def report(rows: list[dict], groups: list[dict], families, args, wall: float, pn
     lines = [
         "# Speed versus error", "",
         f"Command: `{cmd}`  ",
+        f"Code: {_commit()}  ",
         f"Date: {datetime.date.today().isoformat()}; {len(rows)} dry-runs in {wall / 60:.1f} min wall on {where}; "
         f"{len(errors)} failed  ",
         f"Machine: {platform.machine()}, {os.cpu_count()} cores, {platform.system()}; "
@@ -202,6 +207,19 @@ def report(rows: list[dict], groups: list[dict], families, args, wall: float, pn
     if errors:
         lines += ["", "## Failed runs", ""] + [f"- {r['case']}: {r['error']}" for r in errors]
     return "\n".join(lines) + "\n"
+
+
+def _commit() -> str:
+    """The checkout this script ran from: commit and whether files differed from it."""
+    import subprocess
+
+    here = Path(__file__).resolve().parent
+    try:
+        rev = subprocess.run(["git", "-C", str(here), "describe", "--always", "--dirty"], capture_output=True,
+                             text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return "not a git checkout"
+    return f"commit {rev}"
 
 
 def main(argv: list[str] | None = None) -> int:
