@@ -195,7 +195,7 @@ def test_ctrl_c_stops_the_workers_and_keeps_the_finished_rows(tmp_path):
     marker = f"NANOASM_SWEEP_TEST={uuid.uuid4().hex}"
     env = {**os.environ, marker.split("=")[0]: marker.split("=")[1]}
     out = tmp_path / "t.csv"
-    cmd = [sys.executable, "-m", "nanoasm.cli", "sweep", "--families", "sparse", "--seeds", "1-40",
+    cmd = [sys.executable, "-m", "nanoasm.cli", "sweep", "--families", "sparse", "--seeds", "1-200",
            "--workers", "2", "-o", str(out)]
     # a shell may start us with SIGINT ignored, which the child would inherit
     proc = subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
