@@ -224,6 +224,24 @@ def test_a_plateau_over_most_of_each_row_is_not_taken_for_the_substrate(x0):
     assert env.obstacles[0].height == pytest.approx(30.0, abs=1.0)
 
 
+def test_electrode_pads_over_most_of_some_rows_but_little_of_the_image():
+    """Two pads with a gap, as under a bowtie: 7 % of the image, but 56 % of the rows
+    they lie in. Row medians alone align those rows to the pads' top, sink the gap by the
+    pad height and turn the particles there into obstacles."""
+    rng = np.random.default_rng(5)
+    inside = [Body(f"g{i}", "particle", (x, y), 90.0) for i, (x, y) in
+              enumerate([(1900.0, 2150.0), (2900.0, 2400.0), (2500.0, 2850.0)])]
+    outside = [Body("a", "particle", (1000.0, 1000.0), 90.0), Body("b", "particle", (4000.0, 4000.0), 90.0)]
+    pads = [([(0, 2200), (1400, 2200), (1400, 2800), (0, 2800)], 30.0),
+            ([(3600, 2200), (5000, 2200), (5000, 2800), (3600, 2800)], 30.0)]
+    img = render_scan(make_surface(inside + outside, pads, (5000.0, 5000.0), rng=rng), 10.0, rng=rng)
+    env = identify(img)
+    assert sorted(o.kind for o in env.objects) == ["particle"] * 5
+    for b in inside + outside:
+        assert min(math.dist(o.at, b.at) for o in env.objects) < 2.0
+    assert len(env.obstacles) == 2
+
+
 def test_obstacle_outline_and_edge_flags():
     rng = np.random.default_rng(8)
     square = [(1000, 1000), (1600, 1000), (1600, 1400), (1000, 1400)]
