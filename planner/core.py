@@ -24,7 +24,7 @@ from .freespace import FreeSpace
 from .options import PlanOptions
 from .paths import Mover, centre_path, path_length, turns
 from .plan import Assignment, Expect, Operation, Plan, Unfilled
-from .rods import RodController
+from .rods import RodController, push_limit
 from .sequence import order
 
 Progress = Callable[[int, int], None]
@@ -122,10 +122,7 @@ class _Session:
         return True
 
     def move_rod(self, obj: EnvObject, goal: Body, target: str | None) -> bool:
-        # a zigzag walks about 0.24 * swing * L per push: allow three times the straight way
-        per_push = 0.24 * math.radians(self.options.rod_swing) * obj.length
-        limit = 40 + math.ceil(3 * math.dist(obj.at, goal.at) / per_push)
-        pushes, final, ok = self.rods.pushes(obj, goal, limit)
+        pushes, final, ok = self.rods.pushes(obj, goal, push_limit(obj, [obj, goal], self.options))
         if not ok:
             return False
         for p in pushes:

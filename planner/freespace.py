@@ -94,6 +94,38 @@ class FreeSpace:
         skip = set(ignore)
         return sorted(self._ids[i] for i in idx if self._ids[i] not in skip)
 
+    def _any_hit(self, geoms: np.ndarray, radius: float, tree, cores, radii, rmax, clearance,
+                 skip) -> bool:
+        if tree is None:
+            return False
+        reach = radius + (self.clearance if clearance is None else clearance)
+        gi, ci = tree.query(geoms, predicate="dwithin", distance=reach + rmax)
+        if gi.size == 0:
+            return False
+        d = shapely.distance(geoms[gi], cores[ci])
+        near = ci[d < reach + radii[ci] - 1e-9]
+        return bool(near.size) and not set(near.tolist()) <= skip
+
+    def all_free(self, geoms: np.ndarray, radius: float, ignore: Iterable[str] = (),
+                 exempt_fixed: frozenset[int] = frozenset(), clearance: float | None = None) -> bool:
+        """:meth:`is_free` for every footprint of ``geoms`` (an array of cores sharing
+        ``radius``) in two tree queries: True when all are clear."""
+        geoms = np.asarray(geoms, dtype=object)
+        if geoms.size == 0:
+            return True
+        x0, y0, x1, y1 = shapely.bounds(geoms).T
+        w, h = self.area
+        if not ((x0 >= radius).all() and (y0 >= radius).all() and (x1 <= w - radius).all()
+                and (y1 <= h - radius).all()):
+            return False
+        if self._any_hit(geoms, radius, self._fixed_tree, self._fixed, self._fixed_r, self._fixed_rmax,
+                         clearance, set(exempt_fixed)):
+            return False
+        self._index()
+        skip = {k for k, i in enumerate(self._ids) if i in set(ignore)}
+        return not self._any_hit(geoms, radius, self._tree, self._cores, self._radii, self._rmax,
+                                 clearance, skip)
+
     def is_free(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = (),
                 exempt_fixed: frozenset[int] = frozenset(), clearance: float | None = None) -> bool:
         """True when the footprint (or the area it sweeps, for a segment) is clear by

@@ -26,6 +26,7 @@ import math
 import time
 from dataclasses import dataclass
 
+import numpy as np
 import shapely
 
 from nanoasm.bodies import Body
@@ -87,6 +88,18 @@ def push_primitive(rod: Body, end: int, side: int, swing: float, options: PlanOp
     return start, end_pt
 
 
+def capsule_cores(xs, ys, angles, length: float, diameter: float) -> np.ndarray:
+    """Core segments (shapely, as :meth:`Body.geometry`) of rods of one size at centres
+    ``(xs, ys)`` and axis angles (degrees), vectorised."""
+    xs, ys, th = (np.asarray(v, float).reshape(-1) for v in (xs, ys, angles))
+    h = max((length - diameter) / 2, 0.0)
+    if h == 0.0:
+        return shapely.points(np.column_stack([xs, ys]))
+    c, s = np.cos(np.radians(th)) * h, np.sin(np.radians(th)) * h
+    ends = np.stack([np.column_stack([xs - c, ys - s]), np.column_stack([xs + c, ys + s])], axis=1)
+    return shapely.linestrings(ends)
+
+
 def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str, clearance: float | None = None,
                exempt: frozenset[int] = frozenset()) -> bool:
     """The rod's capsule is clear at a, b and poses between (2° apart).
@@ -97,13 +110,10 @@ def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str, clearance: float
     n = max(1, math.ceil(turn / 2.0), math.ceil(math.dist(a.at, b.at) / max(a.radius, 1.0)))
     # interpolate along the shorter way round the axis angle
     d_ang = math.remainder(b.angle - a.angle, 180.0)
-    for k in range(n + 1):
-        t = k / n
-        pose = Body(a.id, "rod", (a.at[0] + t * (b.at[0] - a.at[0]), a.at[1] + t * (b.at[1] - a.at[1])),
-                    a.diameter, a.angle + t * d_ang, a.length)
-        if not space.is_free(pose.geometry(), pose.radius, (ignore,), exempt, clearance):
-            return False
-    return True
+    t = np.linspace(0.0, 1.0, n + 1)
+    cores = capsule_cores(a.at[0] + t * (b.at[0] - a.at[0]), a.at[1] + t * (b.at[1] - a.at[1]),
+                          a.angle + t * d_ang, a.length, a.diameter)
+    return space.all_free(cores, a.radius, (ignore,), exempt, clearance)
 
 
 def _tip_free(space: FreeSpace, tip: Point, tip_radius: float, ignore: str) -> bool:
@@ -166,7 +176,8 @@ def macro_library(rod: Body, options: PlanOptions, swings: tuple[float, ...], qu
 
 def _rotation_sweep(space: FreeSpace, a: Body, b: Body, clearance: float | None,
                     exempt: frozenset[int]) -> bool:
-    """Swept check of one push: the rod turns about a (nearly) fixed pivot from a to b."""
+    """Swept check of one push: the rod turns about a (nearly) fixed pivot from a to b,
+    poses at most 2° and one rod radius (at the centre) apart, all in one query."""
     dth = math.radians(b.angle - a.angle)
     if abs(dth) < 1e-9:
         return swept_free(space, a, b, a.id, clearance, exempt)
@@ -179,18 +190,21 @@ def _rotation_sweep(space: FreeSpace, a: Body, b: Body, clearance: float | None,
     det = (1 - c) ** 2 + s * s
     px = ((1 - c) * rx - s * ry) / det
     py = (s * rx + (1 - c) * ry) / det
-    n = max(1, math.ceil(abs(math.degrees(dth)) / 2.0))
-    prev = a
-    for k in range(1, n + 1):
-        t = dth * k / n
-        ct, st = math.cos(t), math.sin(t)
-        dx, dy = ax - px, ay - py
-        pose = Body(a.id, "rod", (px + ct * dx - st * dy, py + st * dx + ct * dy), a.diameter,
-                    a.angle + math.degrees(t), a.length)
-        if not swept_free(space, prev, pose, a.id, clearance, exempt):
-            return False
-        prev = pose
-    return True
+    arc = math.hypot(ax - px, ay - py) * abs(dth)          # path of the centre
+    n = max(1, math.ceil(abs(math.degrees(dth)) / 2.0), math.ceil(arc / max(a.radius, 1.0)))
+    t = dth * np.arange(n + 1) / n
+    ct, st = np.cos(t), np.sin(t)
+    dx, dy = ax - px, ay - py
+    cores = capsule_cores(px + ct * dx - st * dy, py + st * dx + ct * dy, a.angle + np.degrees(t),
+                          a.length, a.diameter)
+    return space.all_free(cores, a.radius, (a.id,), exempt, clearance)
+
+
+#: Search expansions a second of planner budget buys (measured here: about 2000 a second
+#: among the bowtie example's objects).
+EXPANSIONS_PER_SECOND = 1500
+#: The legs along an SE(2) path share this many times the direct search's budget.
+LEG_SHARE = 3
 
 
 class RodController:
@@ -207,6 +221,7 @@ class RodController:
         self.exempt: frozenset[int] = frozenset()
         self._library: dict[tuple, tuple[list[Macro], list[Macro]]] = {}
         self.deadline = math.inf
+        self.allowance = 0          # search expansions left to the present phase
 
     # -- macros ---------------------------------------------------------------------
     def _macros(self, rod: Body) -> tuple[list[Macro], list[Macro]]:
@@ -264,7 +279,8 @@ class RodController:
         heap = [(h(rod), 0, counter, rod, None, None)]
         closed: set[tuple] = set()
         expansions = 0
-        while heap and expansions < self.max_expansions and time.perf_counter() < self.deadline:
+        while (heap and expansions < self.max_expansions and self.allowance > 0
+               and time.perf_counter() < self.deadline):
             _, g, _, pose, parent, macro = heapq.heappop(heap)
             k = key(pose)
             if k in closed:
@@ -283,6 +299,7 @@ class RodController:
                     pushes[:0] = step
                 return pushes
             expansions += 1
+            self.allowance -= 1
             for m in far:
                 after = _place(pose, m.poses[-1])
                 if key(after) in closed or not self.space.inside(after.geometry(), after.radius):
@@ -330,8 +347,11 @@ class RodController:
     def pushes(self, rod: Body, goal: Body, max_pushes: int = 80) -> tuple[list[RodPush], Body, bool]:
         """Pushes from ``rod`` to ``goal``; returns them, the final pose, success.
 
-        The direct search may take ``options.time_budget`` seconds, the legs along an
-        SE(2) path three times that."""
+        The budget is counted in search expansions, so a plan does not depend on the
+        machine's speed or load: the direct search may expand
+        ``EXPANSIONS_PER_SECOND × options.time_budget`` nodes (about that many seconds
+        here), the legs along an SE(2) path ``LEG_SHARE`` times that together. A wall-clock
+        deadline of ten times the budget only guards against a pathological case."""
         self.exempt = self.space.lying_on(rod.geometry(), rod.radius)
         near_pos = 0.3 * math.radians(self.options.rod_swing) * rod.length
         near_ang = self.options.rod_swing / 2
@@ -340,27 +360,57 @@ class RodController:
             # a rod that starts closer to its neighbours than the clearance only avoids contact
             self.clearance = 0.0 if cramped else None
             legs = [goal]
-            self.deadline = time.perf_counter() + self.options.time_budget
+            budget = self.options.time_budget
+            self.allowance = round(EXPANSIONS_PER_SECOND * budget)
+            self.deadline = time.perf_counter() + 10 * budget
             first = self._leg(rod, goal, near_pos, near_ang)
             if first is None:
-                self.deadline = time.perf_counter() + 3 * self.options.time_budget
-                self.clearance = 0.0 if cramped else self.options.tip_radius   # as the SE(2) path
+                self.allowance = round(LEG_SHARE * EXPANSIONS_PER_SECOND * budget)
+                self.deadline = time.perf_counter() + 10 * LEG_SHARE * budget
+                # the full clearance along the SE(2) path: a rod's end strays ~15 nm per 2°
+                # of its executed angle, and a neighbour it touches hides it from the scans
+                self.clearance = 0.0 if cramped else None
                 waypoints = se2_waypoints(self.space, rod, goal, self.options)
                 if not waypoints:
                     return [], rod, False
                 legs = waypoints[1:]
+                # a detour is longer than the straight way the caller's limit was set by
+                max_pushes = max(max_pushes, push_limit(rod, waypoints, self.options))
             out: list[RodPush] = []
             pose = rod
-            for i, wp in enumerate(legs):
-                step = first if (i == 0 and first is not None) else self._leg(pose, wp, near_pos, near_ang)
+            i, fresh_paths = 0, 0
+            while i < len(legs):
+                step = first if (i == 0 and first is not None) else self._leg(pose, legs[i], near_pos, near_ang)
+                if step is None and i + 1 < len(legs) and first is None:
+                    # the zigzag ends near, not on, each waypoint: from where it did end,
+                    # the next leg may be blocked while the one after is not
+                    step = self._leg(pose, legs[i + 1], near_pos, near_ang)
+                    i += step is not None
                 if step is None:
-                    return out, pose, False
+                    # else a new SE(2) path from there (twice at most)
+                    if fresh_paths >= 2 or self.allowance <= 0 or first is not None:
+                        return out, pose, False
+                    fresh_paths += 1
+                    waypoints = se2_waypoints(self.space, pose, goal, self.options)
+                    if not waypoints:
+                        return out, pose, False
+                    legs, i = waypoints[1:], 0
+                    continue
                 out += step
                 pose = out[-1].pose if out else pose
+                i += 1
             rest, pose, ok = self._finish(pose, goal, max(max_pushes - len(out), 0))
             return out + rest, pose, ok and len(out) + len(rest) <= max_pushes
         finally:
             self.clearance = None
+
+
+def push_limit(rod: Body, poses: list[Body], options: PlanOptions) -> int:
+    """Most pushes allowed along ``poses``: a zigzag walks about 0.24 × swing × L a push;
+    three times the way, and 40 to finish."""
+    per_push = 0.24 * math.radians(options.rod_swing) * rod.length
+    way = sum(math.dist(a.at, b.at) for a, b in zip(poses, poses[1:]))
+    return 40 + math.ceil(3 * way / per_push)
 
 
 def _yaw(deg: float) -> float:
@@ -369,8 +419,20 @@ def _yaw(deg: float) -> float:
 
 
 def se2_waypoints(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions) -> list[Body] | None:
-    """Poses from ``rod`` to ``goal`` in SE(2) (OMPL), the capsule clear by the tip radius
-    along the way; None when OMPL finds none within the budget."""
+    """Poses from ``rod`` to ``goal`` in SE(2) (OMPL); None when OMPL finds none within
+    the budget. The capsule keeps room for the tip on either side of it (a tip diameter
+    and the margin) where it can, else the tip radius: a zigzag needs the tip beside
+    the rod on both sides, and a path hugging a neighbour leaves it none; a rod that
+    starts closer than that to a neighbour only needs to avoid contact."""
+    for clearance in (2 * options.tip_radius + options.margin, options.tip_radius, 0.0):
+        found = _se2_path(space, rod, goal, options, clearance)
+        if found:
+            return found
+    return None
+
+
+def _se2_path(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions,
+              clearance: float) -> list[Body] | None:
     from ompl import base as ob, geometric as og, util as ou
 
     ou.setLogLevel(ou.LogLevel.LOG_NONE)
@@ -382,7 +444,6 @@ def se2_waypoints(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions)
     bounds.setLow(0, r), bounds.setHigh(0, w - r), bounds.setLow(1, r), bounds.setHigh(1, h - r)
     sp.setBounds(bounds)
     si = ob.SpaceInformation(sp)
-    clearance = options.tip_radius
 
     def pose(s) -> Body:
         return Body(rod.id, "rod", (s.getX(), s.getY()), rod.diameter, math.degrees(s.getYaw()), rod.length)
@@ -415,12 +476,16 @@ def se2_waypoints(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions)
     status = ss.solve(options.time_budget)
     if status.getStatus() != ob.PlannerStatus.EXACT_SOLUTION:
         return None
-    ss.simplifySolution(min(0.2, options.time_budget))
     path = ss.getSolutionPath()
-    # legs of about half a rod length: each is a short search for the zigzag
+    # shortcut by vertex removal, a fixed amount of work on the seeded RNG: a simplifier
+    # given seconds would make the plan depend on the machine's load
+    simplifier = og.PathSimplifier(si)
+    simplifier.reduceVertices(path)
+    simplifier.collapseCloseVertices(path)
+    # legs of about a quarter rod length: each is a short search for the zigzag
     length = sum(math.dist((p.getX(), p.getY()), (q.getX(), q.getY()))
                  for p, q in zip(path.getStates(), path.getStates()[1:]))
-    path.interpolate(max(2, math.ceil(length / (rod.length / 2)) + 1))
+    path.interpolate(max(2, math.ceil(length / (rod.length / 4)) + 1))
     states = [pose(q) for q in path.getStates()]
     # keep angles continuous along the path
     out = [states[0]]

@@ -102,13 +102,17 @@ def break_cycles(g: nx.DiGraph, slot_of: Mapping[str, str]) -> list[str]:
 def order(moves: Sequence[tuple[str, str]], targets: Mapping[str, Body], objects: Mapping[str, Body],
           fixed_ids: set[str], clearance: float, effort: Mapping[str, float]
           ) -> tuple[list[Node], dict[str, str]]:
-    """Deterministic order of fills and parkings; ties go to the cheaper move first."""
+    """Deterministic order of fills and parkings: parkings, then rod slots (a rod needs
+    room to swing through: it goes before the nimble particles close its way), then
+    particle slots; ties go to the cheaper move first."""
     g, blocked = dependency_graph(moves, targets, objects, fixed_ids, clearance)
     for t in blocked:
         g.remove_node(("fill", t))
     break_cycles(g, {o: t for t, o in moves})
 
     def key(n: Node) -> tuple:
-        return (0 if n[0] == "park" else 1, effort.get(n[1], 0.0), n[1])
+        if n[0] == "park":
+            return (0, 0.0, n[1])
+        return (1 if targets[n[1]].kind == "rod" else 2, effort.get(n[1], 0.0), n[1])
 
     return list(nx.lexicographical_topological_sort(g, key=key)), blocked
