@@ -11,6 +11,7 @@ the scanner frame, with ``offset`` the drift estimate of the strategy.
 
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from collections.abc import Generator
@@ -18,6 +19,7 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
+import shapely
 
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
@@ -47,6 +49,11 @@ Procedure = Generator[Msg, Any, "RunSummary"]
 ACTIVITIES = ("full_scan", "local_scan", "push", "travel")
 #: A scan line starting farther than this (nm) from the tip is preceded by a travel.
 APPROACH = 300.0
+#: A drift reference is chosen at least this far (nm, plus a rod's length) from the push.
+REFERENCE_GAP = 300.0
+#: Variance (nm² per axis) of an object's position in the first full scan, its row's
+#: drift aside (identification measured 0.28 nm on centres; 2 nm covers pixel effects).
+FULL_SCAN_VAR = 4.0
 
 
 @dataclass
@@ -83,6 +90,8 @@ class Assembly:
         self.times = dict.fromkeys(ACTIVITIES, 0.0)
         self.wall = {"identify": 0.0, "plan": 0.0, "execute": 0.0}
         self.pushed: list[str] = []
+        self.first_seen: dict[str, tuple[np.ndarray, float]] = {}   # full-scan position, time
+        self.no_reference: set[str] = set()     # gated out once: moved on its own
         self.failures: list[tuple[str, str]] = []
         self.drift_log: list[tuple[float, float, float]] = []
         self.filter: DriftFilter | None = None
@@ -245,18 +254,49 @@ class Assembly:
         return any(math.dist(at, self.position(oid)) < min(mine, d)
                    for oid in self.belief.objects if oid != obj_id and oid not in self.belief.lost)
 
+    def _is_reference(self, obj_id: str) -> bool:
+        """Whether an object may measure drift: never pushed, never gated out."""
+        return (obj_id in self.first_seen and obj_id not in self.pushed
+                and obj_id not in self.no_reference and obj_id not in self.belief.lost)
+
+    def _environment(self) -> Environment:
+        """The belief as the planner's environment: objects seen only in the first full
+        scan moved by their row's drift (:meth:`position`), lost ones left out."""
+        env = self.belief.environment()
+        if self.filter is None or not self.raw:
+            return env
+        objs = tuple(replace(o, at=tuple(float(v) for v in self.position(o.id))) if o.id in self.raw else o
+                     for o in env.objects)
+        return Environment(env.area, objs, env.obstacles, env.source)
+
+    def _reference_position(self, obj_id: str) -> tuple[np.ndarray, float]:
+        """Layout position of a reference object from the full scan alone, and the time
+        it was seen there: the row's drift taken out with the present velocity estimate.
+
+        Later sightings are not used: each was put into the layout frame with the drift
+        estimate of its time, so measuring against it would measure drift relative to
+        an old estimate and let the estimate's error walk (a rod pushed sixty times in a
+        row moved the estimate 30 nm that way)."""
+        at, seen_t = self.first_seen[obj_id]
+        tau = seen_t - self.epoch
+        if self.filter is not None:
+            at = at - self.offset_velocity() * tau - self.filter.creep.offset(tau)
+        return at, tau
+
     def _drift_measurement(self, obj_id: str, measured: Body, cov: np.ndarray, t: float) -> bool:
-        """Fold an untouched object's measured position (scanner frame) into the drift
-        filter; False if gated out (the object moved on its own)."""
-        if self.filter is None or obj_id in self.belief.touched:
+        """Fold a reference object's measured position (scanner frame) into the drift
+        filter; False if gated out (the object moved on its own: it is no reference
+        from then on)."""
+        if self.filter is None or not self._is_reference(obj_id):
             return True
-        seen = self.belief.seen[obj_id]
-        z = np.asarray(measured.at) - self.origin - self.position(obj_id)
-        R = cov + seen.cov
-        if obj_id in self.raw:       # the full scan's skew is corrected with an uncertain velocity
-            R = R + self.filter.P[2:, 2:] * (seen.t - self.epoch) ** 2
+        ref, tau = self._reference_position(obj_id)
+        z = np.asarray(measured.at) - self.origin - ref
+        # the full scan's position, its skew corrected with an uncertain velocity
+        R = cov + np.eye(2) * FULL_SCAN_VAR + self.filter.P[2:, 2:] * tau ** 2
         m = self.filter.measure(t, z, R, label=obj_id)
         self._log_drift(t)
+        if not m.accepted:
+            self.no_reference.add(obj_id)
         return bool(m.accepted)
 
     def _observe(self, obj_id: str, at, t: float, cov, *, angle=None) -> None:
@@ -304,7 +344,7 @@ class Assembly:
                 "s_n": block.s_n[::every].tolist(), "s_l": block.s_l[::every].tolist(),
                 "n": int(len(codes)), "every": every}
 
-    def _reference(self, near: tuple[float, float]):
+    def _reference(self, near: tuple[float, float], obj_id: str | None = None):
         """Measure drift on an untouched object (kalman/full) or the anchor (anchor)."""
         t = yield Msg("clock")
         if self.strategy.anchored and self.anchor is not None:
@@ -321,11 +361,15 @@ class Assembly:
         if self.filter.measurements and t - self.filter.time < self.options.reference_every:
             return
         candidates = [o for oid, o in self.belief.objects.items()
-                      if oid not in self.belief.touched and oid not in self.belief.lost
+                      if self._is_reference(oid) and oid not in self.belief.touched
                       and oid not in self.moving and o.kind == "particle" and not o.edge]
         if not candidates:
             return
-        ref = min(candidates, key=lambda o: (math.dist(o.at, near), o.id))
+        # the nearest one outside the reach of the push to come (a rod swings its ends
+        # half its length around): a reference the push may shove measures nothing
+        pushed = self.belief[obj_id] if obj_id is not None else None
+        reach = REFERENCE_GAP + (pushed.length if pushed is not None and pushed.elongated else 0.0)
+        ref = min(candidates, key=lambda o: (math.dist(o.at, near) < reach, math.dist(o.at, near), o.id))
         found = yield from self._locate(ref.id)
         if found is None:
             self.belief.lose(ref.id)
@@ -576,7 +620,7 @@ class Assembly:
         obj_id = op.object
         start = self.belief[obj_id]
         if self.strategy.scans:
-            yield from self._reference(start.at)
+            yield from self._reference(start.at, obj_id)
             found = yield from self._locate(obj_id)
             if found is None:
                 self.belief.lose(obj_id)
@@ -678,19 +722,22 @@ class Assembly:
             row = min(max(o.at[1] / (region_side / pixels), 0.0), pixels - 1.0)
             self.belief.seen[o.id].t = t0 + (row + 0.5) * line_time
         self.raw = {o.id for o in env.objects}
+        self.first_seen = {o.id: (np.asarray(o.at, float), self.belief.seen[o.id].t) for o in env.objects}
+        if self.filter is not None:
+            # the drift velocity first: the plan needs the objects where they are, not
+            # where the full scan's rows put them (hundreds of nm apart over a frame)
+            yield from self._bootstrap()
         w0 = time.perf_counter()
-        plan = self.replanner.start(env)
+        plan = self.replanner.start(self._environment())
         self.wall["plan"] += time.perf_counter() - w0
         first_plan = plan
         yield Msg("emit", ("plan", plan.to_dict()))
         yield Msg("event", (f"plan: {len(plan.assignment)} slot(s) assigned, {len(plan.operations)} push(es)",))
         if self.strategy.anchored:
             self._choose_anchor(plan)
-        if self.filter is not None:
-            yield from self._bootstrap()
         ops = list(plan.operations)
         self.moving = {op.object for op in ops}
-        self._plan_start = self._starts(env, ops)
+        self._plan_start = self._starts(self._environment(), ops)
         corrections: dict[str, int] = {}
         done = 0
         i = 0
@@ -708,26 +755,59 @@ class Assembly:
                 # a rod's pushes scatter more (pivot, path): re-aiming absorbs up to L/4
                 o = self.belief[op.object]
                 limit = max(self.options.replan_after, o.length / 4) if o.kind == "rod" else self.options.replan_after
-                if lost or (self.strategy.replans and (outcome == "failed" or off > limit)):
+                astray = o.kind == "rod" and not lost and not self._course_clear(op.object, ops[i:])
+                if lost or (self.strategy.replans and (outcome == "failed" or off > limit or astray)):
                     w0 = time.perf_counter()
-                    rest = self.replanner.remainder(self.belief.environment(), done, force=True)
+                    rest = self.replanner.remainder(self._environment(), done, force=True)
                     self.wall["plan"] += time.perf_counter() - w0
                     self.counts["replans"] += 1
                     ops, i, done = list(rest.plan.operations), 0, 0
-                    self._plan_start = self._starts(self.belief.environment(), ops)
+                    self._plan_start = self._starts(self._environment(), ops)
                     self.moving = {o.object for o in ops}
-                    yield Msg("event", (f"replanned after {op.object} {outcome} "
-                                        f"({'lost' if lost else f'{off:.0f} nm off course'}): "
+                    why = ("lost" if lost else f"{off:.0f} nm off course"
+                           + (", its course now too close to a neighbour" if astray else ""))
+                    yield Msg("event", (f"replanned after {op.object} {outcome} ({why}): "
                                         f"{len(ops)} push(es) remain",))
                 elif op.target is not None and all(o.object != op.object for o in ops[i:]):
                     extra = self._correction(op, corrections)
                     if extra:
                         ops[i:i] = extra
-                        self._plan_start.update(self._starts(self.belief.environment(), extra))
+                        self._plan_start.update(self._starts(self._environment(), extra))
             yield Msg("checkpoint", (self._checkpoint(ops, i),))
         self.wall["execute"] = time.perf_counter() - t_wall - self.wall["identify"] - self.wall["plan"]
         yield Msg("emit", ("result", _result_doc(self._summary(env, first_plan))))
         return self._summary(env, first_plan)
+
+    def _course_clear(self, obj_id: str, rest: list[Operation]) -> bool:
+        """Whether a rod's next planned poses, carried along by its present deviation
+        from the plan (re-aiming keeps that deviation: shift and turn), stay clear of the
+        other objects by the tip radius. A rod's pushes scatter by a few nm and degrees;
+        along a course planned 30 nm from a neighbour, the deviation adds up until the
+        rod touches it (and the scans then cannot tell the two apart)."""
+        upcoming = list(itertools.takewhile(lambda p: p.object == obj_id, rest))
+        if not upcoming or upcoming[0].id not in self._plan_start:
+            return True
+        o = self.belief[obj_id]
+        (ex, ey), ea = self._plan_start[upcoming[0].id]
+        if ea is None or o.angle is None:
+            return True
+        shift = np.asarray(o.at, float) - (ex, ey)
+        turn = math.remainder(o.angle - ea, 180.0)
+        others = [b for b in self._environment().objects if b.id != obj_id]
+        if not others:
+            return True
+        cores = np.array([b.geometry() for b in others], dtype=object)
+        reach = np.array([b.radius for b in others]) + o.radius + self.plan_options.tip_radius
+        tree = shapely.STRtree(cores)
+        for p in upcoming:
+            at = np.asarray(p.expect.at, float) + shift
+            body = Body(obj_id, "rod", (float(at[0]), float(at[1])), o.diameter,
+                        (p.expect.angle or 0.0) + turn, o.length)
+            g = body.geometry()
+            idx = tree.query(g, predicate="dwithin", distance=float(reach.max()))
+            if idx.size and (shapely.distance(g, cores[idx]) < reach[idx]).any():
+                return False
+        return True
 
     def _starts(self, env: Environment, ops: list[Operation]) -> dict[int, tuple]:
         """Pose ``(at, angle)`` the plan expects each operation's object to start from."""

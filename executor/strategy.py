@@ -98,7 +98,7 @@ class ExecOptions:
     line_factor: float = 1.0
     reference_every: float = 120.0
     drift_q: float = 1e-6
-    drift_q_offset: float = 1.0
+    drift_q_offset: float = 0.1
     max_corrections: int = 2
     replan_after: float = 60.0
     lost_radius: float = 1500.0
