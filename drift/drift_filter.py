@@ -138,6 +138,34 @@ class DriftFilter:
         self.measurements: list[Measurement] = []
         self._anchor = (0, 0.0)  # history index and tau of the last accepted state
         self._streak: list[_Batch] = []  # batches rejected since then
+        self.resumed_measurements = 0    # measurements made before a resume
+
+    # -- saving and resuming ------------------------------------------------------------
+    def state_dict(self) -> dict:
+        """The estimate, its covariance factor and the creep input (JSON types): what
+        :meth:`from_state` needs to go on from here (the history for smoothing and the
+        gating streak are not kept)."""
+        c = self.creep
+        return {"epoch": self.epoch, "tau": self._tau, "x": self._x.tolist(), "L": self._L.tolist(),
+                "measured": len(self.measurements),
+                "creep": {"frozen": c.frozen.tolist(), "times": c.times.tolist(), "steps": c.steps.tolist()}}
+
+    @classmethod
+    def from_state(cls, params: DriftFilterParams, state: dict) -> DriftFilter:
+        """A filter that goes on from :meth:`state_dict`'s estimate."""
+        f = cls(params, epoch=float(state["epoch"]))
+        tau = float(state["tau"])
+        x, L = np.asarray(state["x"], float), np.asarray(state["L"], float)
+        if x.shape != (STATE_DIM,) or L.shape != (STATE_DIM, STATE_DIM) or not (
+                np.isfinite(x).all() and np.isfinite(L).all() and math.isfinite(tau)):
+            raise ValueError("drift filter state: x must be (4,), L (4, 4), all finite")
+        for t, step in zip(state["creep"]["times"], state["creep"]["steps"]):
+            f.creep.record(float(t), step)
+        f.creep.frozen = np.asarray(state["creep"]["frozen"], float).reshape(2)
+        f._commit(tau, 0.0, x, L, x, L, np.zeros((STATE_DIM, 0)), "resume")
+        f._anchor = (len(f.history) - 1, tau)
+        f.resumed_measurements = int(state.get("measured", 0))
+        return f
 
     # -- state ----------------------------------------------------------------------------
     @property

@@ -96,6 +96,8 @@ class Assembly:
         self.drift_log: list[tuple[float, float, float]] = []
         self.filter: DriftFilter | None = None
         self.anchor: tuple[str, tuple[float, float]] | None = None
+        self.env: Environment | None = None        # identified by the first full scan
+        self.first_plan: Plan | None = None
         self.anchor_offset = np.zeros(2)
         self.config = None
         self.scan_opts = ScanOptions()
@@ -358,7 +360,8 @@ class Assembly:
             return
         if self.filter is None:
             return
-        if self.filter.measurements and t - self.filter.time < self.options.reference_every:
+        measured = self.filter.measurements or self.filter.resumed_measurements
+        if measured and t - self.filter.time < self.options.reference_every:
             return
         candidates = [o for oid, o in self.belief.objects.items()
                       if self._is_reference(oid) and oid not in self.belief.touched
@@ -738,9 +741,27 @@ class Assembly:
         ops = list(plan.operations)
         self.moving = {op.object for op in ops}
         self._plan_start = self._starts(self._environment(), ops)
-        corrections: dict[str, int] = {}
-        done = 0
-        i = 0
+        self.env, self.first_plan = env, first_plan
+        self.wall["execute"] += time.perf_counter() - t_wall - self.wall["identify"] - self.wall["plan"]
+        return (yield from self._execute(ops, 0, 0, {}))
+
+    def resume(self, config, state: dict) -> Procedure:
+        """Go on with a run from a checkpoint's ``state`` (see :meth:`state_dict`) on the
+        same instrument: no full scan, no new plan; the next push scans its object before
+        it as every push does, the drift filter's uncertainty having grown with the time
+        the run stood still."""
+        self.config = config
+        ops, done, corrections = self._restore(state)
+        t = yield Msg("clock")
+        yield Msg("event", (f"resumed from the checkpoint after push {self.counts['pushes']} "
+                            f"({t - float(state['t']):.0f} s later): {len(ops)} push(es) remain",))
+        return (yield from self._execute(ops, 0, done, corrections))
+
+    def _execute(self, ops: list[Operation], i: int, done: int, corrections: dict[str, int]) -> Procedure:
+        """The pushes of ``ops`` from ``i`` on, with scans, corrections and replanning;
+        a checkpoint after each."""
+        env, first_plan = self.env, self.first_plan
+        w_start, plan0 = time.perf_counter(), self.wall["plan"]
         while i < len(ops):
             op = ops[i]
             if op.object in self.belief.lost:
@@ -773,8 +794,9 @@ class Assembly:
                     if extra:
                         ops[i:i] = extra
                         self._plan_start.update(self._starts(self._environment(), extra))
-            yield Msg("checkpoint", (self._checkpoint(ops, i),))
-        self.wall["execute"] = time.perf_counter() - t_wall - self.wall["identify"] - self.wall["plan"]
+            t_now = yield Msg("clock")
+            yield Msg("checkpoint", (self._checkpoint(ops, i, done, corrections, t_now),))
+        self.wall["execute"] += time.perf_counter() - w_start - (self.wall["plan"] - plan0)
         yield Msg("emit", ("result", _result_doc(self._summary(env, first_plan))))
         return self._summary(env, first_plan)
 
@@ -848,10 +870,79 @@ class Assembly:
         best = min(cands, key=lambda o: (math.dist(o.at, (cx, cy)), o.id))
         self.anchor = (best.id, best.at)
 
-    def _checkpoint(self, ops: list[Operation], i: int) -> dict:
-        return {"remaining": [o.to_dict() for o in ops[i:]], "belief": self.belief.to_dict(),
+    def _checkpoint(self, ops: list[Operation], i: int, done: int, corrections: dict[str, int],
+                    t: float) -> dict:
+        return {"t": t, "remaining": [o.to_dict() for o in ops[i:]], "belief": self.belief.to_dict(),
                 "counts": dict(self.counts), "times": dict(self.times), "pushed": list(self.pushed),
-                "drift": self.drift_log[-1] if self.drift_log else None}
+                "drift": self.drift_log[-1] if self.drift_log else None,
+                "state": self.state_dict(ops[i:], done, corrections, t)}
+
+    def state_dict(self, remaining: list[Operation], done: int, corrections: dict[str, int],
+                   t: float) -> dict:
+        """Everything :meth:`resume` needs to go on after ``done`` operations of the
+        current plan, ``remaining`` to run (JSON types, lossless)."""
+        def plan_doc(plan: Plan | None, ops=None) -> dict | None:
+            if plan is None:
+                return None
+            return (replace(plan, operations=tuple(ops)) if ops is not None else plan).to_dict()
+
+        return {
+            "format": "nanoasm.checkpoint/1", "t": t, "saved_at": time.time(), "strategy": self.strategy.value,
+            "epoch": self.epoch, "origin": [float(v) for v in self.origin],
+            "env": self.env.to_dict(), "first_plan": plan_doc(self.first_plan),
+            "plan": plan_doc(self.replanner.plan), "base": (self.replanner.base.to_dict()
+                                                            if self.replanner.base is not None else None),
+            "remaining": plan_doc(self.first_plan, remaining), "done": done,
+            "corrections": dict(corrections), "belief": self.belief.state_dict(),
+            "filter": self.filter.state_dict() if self.filter is not None else None,
+            "raw": sorted(self.raw), "first_seen": {k: [float(a[0]), float(a[1]), float(ts)]
+                                                    for k, (a, ts) in self.first_seen.items()},
+            "no_reference": sorted(self.no_reference), "pushed": list(self.pushed),
+            "moving": sorted(self.moving), "preload_factor": dict(self.preload_factor),
+            "plan_start": {str(k): [list(at), ang] for k, (at, ang) in self._plan_start.items()},
+            "creep_anchor": None if self._creep_anchor is None else [float(v) for v in self._creep_anchor],
+            "anchor": None if self.anchor is None else [self.anchor[0], list(self.anchor[1])],
+            "anchor_offset": [float(v) for v in self.anchor_offset],
+            "counts": dict(self.counts), "times": dict(self.times), "wall": dict(self.wall),
+            "failures": [list(f) for f in self.failures],
+            "drift_log": [list(d) for d in self.drift_log]}
+
+    def _restore(self, st: dict) -> tuple[list[Operation], int, dict[str, int]]:
+        """Set the run's state from :meth:`state_dict`; returns (remaining, done, corrections)."""
+        from nanoasm.planner.plan import plan_from_dict
+        from nanoasm.world.environment import environment_from_dict
+
+        if st.get("format") != "nanoasm.checkpoint/1":
+            raise ValueError(f"not a nanoasm checkpoint (format {st.get('format')!r})")
+        if st["strategy"] != self.strategy.value:
+            raise ValueError(f"the run used strategy {st['strategy']!r}, not {self.strategy.value!r}")
+        self.epoch, self.origin = float(st["epoch"]), np.asarray(st["origin"], float)
+        self.env = environment_from_dict(st["env"], "checkpoint")
+        self.first_plan = plan_from_dict(st["first_plan"], "checkpoint")
+        self.replanner.plan = plan_from_dict(st["plan"], "checkpoint") if st["plan"] else None
+        self.replanner.base = environment_from_dict(st["base"], "checkpoint") if st["base"] else None
+        remaining = list(plan_from_dict(st["remaining"], "checkpoint").operations)
+        self.belief = Belief.from_state(st["belief"])
+        if st["filter"] is not None:
+            o = self.options
+            self.filter = DriftFilter.from_state(
+                DriftFilterParams(q=o.drift_q, q_offset=o.drift_q_offset, offset_std=1.0), st["filter"])
+        self.raw = set(st["raw"])
+        self.first_seen = {k: (np.array(v[:2], float), float(v[2])) for k, v in st["first_seen"].items()}
+        self.no_reference = set(st["no_reference"])
+        self.pushed = list(st["pushed"])
+        self.moving = set(st["moving"])
+        self.preload_factor = {k: float(v) for k, v in st["preload_factor"].items()}
+        self._plan_start = {int(k): (tuple(v[0]), v[1]) for k, v in st["plan_start"].items()}
+        self._creep_anchor = None if st["creep_anchor"] is None else np.asarray(st["creep_anchor"], float)
+        self.anchor = None if st["anchor"] is None else (st["anchor"][0], tuple(st["anchor"][1]))
+        self.anchor_offset = np.asarray(st["anchor_offset"], float)
+        self.counts.update({k: int(v) for k, v in st["counts"].items()})
+        self.times.update({k: float(v) for k, v in st["times"].items()})
+        self.wall.update({k: float(v) for k, v in st["wall"].items()})
+        self.failures = [tuple(f) for f in st["failures"]]
+        self.drift_log = [tuple(d) for d in st["drift_log"]]
+        return remaining, int(st["done"]), {k: int(v) for k, v in st["corrections"].items()}
 
     def _summary(self, env: Environment, first_plan: Plan) -> RunSummary:
         plan = self.replanner.plan or first_plan

@@ -61,3 +61,23 @@ class Belief:
     def to_dict(self) -> dict:
         return {"objects": [o.to_dict() for o in self.objects.values()],
                 "lost": sorted(self.lost), "touched": sorted(self.touched)}
+
+    def state_dict(self) -> dict:
+        """Everything, for resuming a run: :meth:`to_dict` plus the sightings, area and
+        obstacles (JSON types)."""
+        return {**self.to_dict(), "area": list(self.area),
+                "obstacles": [ob.to_dict() for ob in self.obstacles],
+                "seen": {k: {"t": v.t, "cov": np.asarray(v.cov, float).tolist()} for k, v in self.seen.items()}}
+
+    @classmethod
+    def from_state(cls, state: dict) -> Belief:
+        """The belief :meth:`state_dict` wrote."""
+        from nanoasm.world.environment import FORMAT as ENV_FORMAT, environment_from_dict
+
+        env = environment_from_dict({"format": ENV_FORMAT, "area": state["area"],
+                                     "objects": state["objects"], "obstacles": state["obstacles"]},
+                                    "checkpoint")
+        b = cls(env, 0.0)
+        b.seen = {k: Seen(float(v["t"]), np.asarray(v["cov"], float)) for k, v in state["seen"].items()}
+        b.lost, b.touched = set(state["lost"]), set(state["touched"])
+        return b

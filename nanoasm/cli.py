@@ -327,6 +327,9 @@ LogFile = Annotated[Optional[Path], typer.Option("--log", help="Write the run lo
 Live = Annotated[bool, typer.Option("--live", help="Stream the run live over Foxglove's WebSocket "
                                     "protocol on 127.0.0.1 (open it in Foxglove).")]
 LivePort = Annotated[int, typer.Option("--live-port", help="Port of the --live stream.")]
+Resume = Annotated[Optional[Path], typer.Option("--resume", help="Go on with the stopped run of this log from "
+                                                              "its last checkpoint (writes LOG-resumed.mcap "
+                                                              "unless --log says otherwise).")]
 
 
 @contextmanager
@@ -365,15 +368,43 @@ def dry_run_cmd(
     log: LogFile = None,
     live: Live = False,
     live_port: LivePort = 8765,
+    resume: Resume = None,
 ) -> None:
     """Assemble LAYOUT in a simulated world holding SCENE, exactly as a real run would."""
     from nanoasm.cad.layout import load_layout
     from nanoasm.dryrun import dry_run
     from nanoasm.examples import path as example
+    from nanoasm.executor.resume import load_sim_state, resume_point, resumed_log_path, sim_state_path
     from nanoasm.executor.strategy import STRATEGIES, ExecOptions
     from nanoasm.planner.options import PLANNERS, PlanOptions
     from nanoasm.world.scene import load_scene
 
+    if resume is not None:
+        if scene_file is not None or layout_file is not None:
+            raise InputError(None, "--resume", "takes the scene and the layout from the log; give neither")
+        if not resume.is_file():
+            raise InputError(str(resume), None, "no such run log")
+        kept = load_sim_state(sim_state_path(resume))
+        point = resume_point(resume, at=float(kept["t"]))
+        meta = point.metadata
+        if meta.get("kind") != "dry-run" or point.scene is None:
+            raise InputError(str(resume), None, "not a dry-run's log (resume a run with nanoasm run --resume)")
+        strategy = point.state["strategy"]
+        seed = int(meta["seed"]) if meta.get("seed", "None") not in ("None", "") else None
+        log = log or resumed_log_path(resume)
+        scene_name, layout_name = meta.get("scene"), meta.get("layout")
+        options, plan_options = ExecOptions(strategy=strategy), PlanOptions(planner=planner, time_budget=time_budget,
+                                                                             seed=seed or 0)
+        meta = {**meta, "resumed_from": str(resume)}
+        with _run_logs(log, live, live_port, point.layout, meta, truth=True) as logs:
+            outcome = _with_run_progress(lambda subs: dry_run(
+                point.scene, point.layout, seed=seed, options=options, plan_options=plan_options,
+                subscribers=[*subs, *logs], scene_name=scene_name, layout_name=layout_name,
+                keep_sim=sim_state_path(log), resume=(point.state, kept)))
+        if report is not None:
+            outcome.report.save(report)
+        _print_summary(point.layout, outcome)
+        return
     if (scene_file is None) != (layout_file is None):
         raise InputError(None, "SCENE LAYOUT", "give both a scene and a layout, or neither for the example")
     scene_file = scene_file or example("bowtie_scene.toml")
@@ -397,7 +428,8 @@ def dry_run_cmd(
     with _run_logs(log, live, live_port, layout, meta, truth=True) as logs:
         outcome = _with_run_progress(lambda subs: dry_run(
             scene, layout, seed=seed, options=options, plan_options=plan_options, subscribers=[*subs, *logs],
-            scene_name=str(scene_file), layout_name=str(layout_file)))
+            scene_name=str(scene_file), layout_name=str(layout_file),
+            keep_sim=None if log is None else sim_state_path(log)))
     rep = outcome.report
     if report is not None:
         rep.save(report)
@@ -408,13 +440,15 @@ def dry_run_cmd(
 
 @app.command("run")
 def run_cmd(
-    layout_file: Annotated[Path, typer.Argument(metavar="LAYOUT", help="Layout (TOML/JSON).")],
-    instrument: Annotated[Path, typer.Option(help="Instrument file (nanoasm.instrument/1).")],
+    layout_file: Annotated[Optional[Path], typer.Argument(metavar="LAYOUT", help="Layout (TOML/JSON); "
+                                                          "not with --resume.")] = None,
+    instrument: Annotated[Path, typer.Option(help="Instrument file (nanoasm.instrument/1).")] = None,
     strategy: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full or anchor.")] = "full",
     report: Annotated[Optional[Path], typer.Option(help="Write the report (JSON) here.")] = None,
     log: LogFile = None,
     live: Live = False,
     live_port: LivePort = 8765,
+    resume: Resume = None,
 ) -> None:
     """Assemble LAYOUT unattended on the instrument described by --instrument (NI-DAQmx)."""
     from nanoasm.cad.layout import load_layout
@@ -423,23 +457,45 @@ def run_cmd(
     from nanoasm.executor.instrument_file import load_instrument_config
     from nanoasm.executor.nidaq import NiDaqInstrument
     from nanoasm.executor.report import InstrumentTime, Report, WallTime
+    from nanoasm.executor.resume import ShiftedClock, clock_shift, resume_point, resumed_log_path
     from nanoasm.executor.strategy import STRATEGIES, ExecOptions
 
+    if instrument is None:
+        raise InputError(None, "--instrument", "is required: the instrument file (nanoasm.instrument/1)")
     if strategy not in STRATEGIES:
         raise InputError(None, "--strategy", f"unknown strategy {strategy!r}; one of {', '.join(STRATEGIES)}")
     if report is not None and report.suffix.lower() != ".json":
         raise InputError(str(report), None, "report must end in .json")
-    layout = load_layout(layout_file)
+    point = None
+    if resume is not None:
+        if layout_file is not None:
+            raise InputError(None, "--resume", "takes the layout from the log; give no LAYOUT")
+        point = resume_point(resume)
+        if point.metadata.get("kind") != "run":
+            raise InputError(str(resume), None, "not a run's log (resume a dry-run with nanoasm dry-run --resume)")
+        layout, strategy = point.layout, point.state["strategy"]
+        layout_file = Path(point.metadata.get("layout", "layout.json"))
+        log = log or resumed_log_path(resume)
+    elif layout_file is None:
+        raise InputError(None, "LAYOUT", "is required (or --resume LOG)")
+    else:
+        layout = load_layout(layout_file)
     config = load_instrument_config(instrument)
     assembly = Assembly(layout, ExecOptions(strategy=strategy))
     meta = {"kind": "run", "strategy": strategy, "layout": str(layout_file), "instrument": str(instrument)}
+    if resume is not None:
+        meta["resumed_from"] = str(resume)
     suffix = instrument.suffix.lower()
     attach = {"instrument" + suffix: ("application/" + suffix.lstrip("."), instrument.read_bytes())}
-    with (NiDaqInstrument(config) as inst,
+    with (NiDaqInstrument(config) as hardware,
           _run_logs(log, live, live_port, layout, meta, attachments=attach) as logs):
+        inst = hardware
+        if point is not None:       # the clock goes on from the stopped run's
+            inst = ShiftedClock(hardware, clock_shift(point.state, hardware.clock()))
         t0 = inst.clock()
-        summary = _with_run_progress(lambda subs: RunEngine(inst, [*subs, *logs]).run(
-            assembly.procedure(inst.config)))
+        procedure = (assembly.resume(inst.config, point.state) if point is not None
+                     else assembly.procedure(inst.config))
+        summary = _with_run_progress(lambda subs: RunEngine(inst, [*subs, *logs]).run(procedure))
         total = inst.clock() - t0
     t = summary.times
     from nanoasm.bodies import Body

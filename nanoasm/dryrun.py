@@ -8,6 +8,7 @@ for the report); the executor itself sees the simulated AFM only through the
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import numpy as np
@@ -19,6 +20,7 @@ from nanoasm.cad.layout import Layout
 from nanoasm.executor.assembly import Assembly, RunSummary
 from nanoasm.executor.engine import RunEngine, Subscriber
 from nanoasm.executor.report import InstrumentTime, Report, WallTime
+from nanoasm.executor.resume import SimKeeper
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.planner import PlanOptions
 from nanoasm.planner.plan import Assignment
@@ -91,21 +93,36 @@ def filled_slots(layout: Layout, assignment, final: dict[str, Body]) -> tuple[tu
 def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
             options: ExecOptions | None = None, plan_options: PlanOptions | None = None,
             subscribers: list[Subscriber] | None = None, scene_name: str | None = None,
-            layout_name: str | None = None) -> Outcome:
-    """Run the assembly of ``layout`` on a simulated AFM holding ``scene``."""
+            layout_name: str | None = None, keep_sim: str | os.PathLike | None = None,
+            resume: tuple[dict, dict] | None = None) -> Outcome:
+    """Run the assembly of ``layout`` on a simulated AFM holding ``scene``.
+
+    ``keep_sim``: keep the simulated world at every checkpoint in this file (for
+    resuming; see :mod:`nanoasm.executor.resume`). ``resume``: ``(checkpoint state,
+    kept world)`` of a stopped dry-run to go on with instead of starting afresh.
+    """
     seed = scene.seed if seed is None else seed
     seed = 0 if seed is None else seed
     t_wall = time.perf_counter()
-    sim = SimulatedAFM(scene, seed=seed)
-    start_clock = sim.clock()
+    if resume is not None:          # the world as the stopped run left it
+        state, kept = resume
+        sim, start_clock, initial_sample = kept["sim"], kept["start_clock"], kept["initial"]
+    else:
+        sim = SimulatedAFM(scene, seed=seed)
+        start_clock = sim.clock()
+        initial_sample = sim.truth()
     assembly = Assembly(layout, options, plan_options)
+    subscribers = list(subscribers or ())
+    if keep_sim is not None:
+        subscribers.append(SimKeeper(keep_sim, sim, {"start_clock": start_clock, "initial": initial_sample}))
     engine = RunEngine(sim, subscribers)
     # run logs (RunLog) get the scene before and the truth after the run, from the harness alone
-    logs = [s for s in subscribers or () if hasattr(s, "sim_truth")]
+    logs = [s for s in subscribers if hasattr(s, "sim_truth")]
     for log in logs:
         log.sim_scene(scene, sim.config, seed)
-    initial_sample = sim.truth()
-    summary = engine.run(assembly.procedure(sim.config))
+    procedure = (assembly.resume(sim.config, resume[0]) if resume is not None
+                 else assembly.procedure(sim.config))
+    summary = engine.run(procedure)
     initial = _layout_frame(sim, summary, initial_sample)
     final = _layout_frame(sim, summary, sim.truth())
     total = sim.clock() - start_clock

@@ -45,3 +45,24 @@ def logged_dry_run(path, *, seed: int = 3, strategy: str = "full"):
     finally:
         log.close()
     return out, rec
+
+
+def kill_when(proc, ready, timeout: float = 180.0) -> None:
+    """SIGKILL the subprocess ``proc`` as soon as ``ready()`` is true (polled); fails the
+    test if the process ends first. The process is reaped whatever happens."""
+    import signal
+    import time
+
+    try:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and proc.poll() is None:
+            if ready():
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, f"the process ended before it could be killed: {proc.stderr.read()!r}"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -6,7 +6,6 @@ from __future__ import annotations
 import json
 import os
 import random
-import signal
 import subprocess
 import sys
 import time
@@ -14,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from runlogkit import logged_dry_run, particle_bowtie
+from runlogkit import kill_when, logged_dry_run, particle_bowtie
 
 from nanoasm.cad.layout import layout_from_dict
 from nanoasm.errors import InputError
@@ -202,19 +201,7 @@ def test_a_killed_dry_run_leaves_a_readable_prefix(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "nanoasm.cli", "dry-run", str(example("bowtie_scene.toml")),
                              str(layout_file), "--seed", "3", "--log", str(out)],
                             cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and proc.poll() is None:
-            if out.exists() and read_log(out, topics={"/push"}).topic("/push"):
-                break
-            time.sleep(0.05)
-        assert proc.poll() is None, f"the dry-run ended before it could be killed: {proc.stderr.read()!r}"
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    kill_when(proc, lambda: out.exists() and bool(read_log(out, topics={"/push"}).topic("/push")), 120.0)
     log = read_log(out)
     assert not log.complete
     assert log.topic("/push") and log.topic("/environment") and log.attachments.get("layout.json")

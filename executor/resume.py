@@ -1,0 +1,174 @@
+"""Resuming a stopped run from its log: the last checkpoint, what the run was given, and
+(dry-runs) the simulated world as it was then.
+
+A run log holds a ``/checkpoint`` after every push: the executor's whole state
+(:meth:`~nanoasm.executor.assembly.Assembly.state_dict`). ``nanoasm run --resume`` and
+``nanoasm dry-run --resume`` read the last one and go on from there
+(:meth:`~nanoasm.executor.assembly.Assembly.resume`), writing a new log beside the old
+one. A dry-run's simulated world is not in the log (a real run's world goes on by
+itself): the harness keeps it beside the log, ``run.mcap.sim``, replaced atomically at
+every checkpoint, so a run killed at any moment leaves a world that matches one of the
+log's checkpoints.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nanoasm.errors import InputError
+from nanoasm.fileio import write_atomic
+
+SIM_SUFFIX = ".sim"
+SIM_FORMAT = "nanoasm.simstate/1"
+
+
+@dataclass(frozen=True)
+class ResumePoint:
+    """What a log offers for resuming: the last checkpoint's state and the run's inputs."""
+
+    path: str
+    state: dict
+    layout: Any                          # cad.layout.Layout
+    metadata: dict[str, str]             # the log's "nanoasm" metadata record
+    scene: Any = None                    # world.scene.Scene (dry-runs)
+    complete: bool = False               # the log ended normally (nothing to resume)
+
+
+def resume_point(path: str | os.PathLike, at: float | None = None) -> ResumePoint:
+    """Read ``path`` (a run log, complete or cut short) for resuming from its last
+    checkpoint, or from the one at instrument time ``at`` (a dry-run's kept world may be
+    one checkpoint behind the log, if the run was killed between the two writes).
+    InputError naming the file and the problem when it cannot be resumed."""
+    from nanoasm.cad.layout import layout_from_dict
+    from nanoasm.executor.logread import read_log
+    from nanoasm.world.scene import scene_from_dict
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(str(path), None, "no such run log")
+    log = read_log(p, topics={"/checkpoint", "/result"})
+    if not log.channels and not log.attachments:
+        raise InputError(str(path), None, f"not a readable run log ({log.problem or 'no records'})")
+    if log.last("/result") is not None:
+        raise InputError(str(path), None, "the run finished; there is nothing to resume")
+    ckpts = [m for m in log.topic("/checkpoint") if isinstance(m.data, dict) and "state" in m.data]
+    if at is not None:
+        ckpts = [m for m in ckpts if abs(float(m.data["state"]["t"]) - at) <= 1e-6]
+    ckpt = ckpts[-1] if ckpts else None
+    if ckpt is None and at is not None:
+        raise InputError(str(path), "/checkpoint", f"no checkpoint at t = {at:.3f} s, where the kept "
+                                                   "simulated world stands")
+    if ckpt is None:
+        raise InputError(str(path), "/checkpoint", "the log has no checkpoint (the run stopped before "
+                                                   "its first push ended); start it again")
+    layout_doc = log.attachment_json("layout.json")
+    if layout_doc is None:
+        raise InputError(str(path), "layout.json", "the log has no layout attached")
+    layout = layout_from_dict(layout_doc, f"{path}: layout.json")
+    scene_doc = log.attachment_json("scene.json")
+    scene = scene_from_dict(scene_doc, f"{path}: scene.json") if scene_doc is not None else None
+    return ResumePoint(str(path), ckpt.data["state"], layout, dict(log.metadata.get("nanoasm", {})), scene,
+                       log.complete)
+
+
+def sim_state_path(log_path: str | os.PathLike) -> Path:
+    """Where a dry-run keeps its simulated world beside ``log_path``."""
+    p = Path(log_path)
+    return p.with_name(p.name + SIM_SUFFIX)
+
+
+def resumed_log_path(log_path: str | os.PathLike) -> Path:
+    """A new log beside ``log_path`` for the resumed run: ``run-resumed.mcap``, then
+    ``run-resumed2.mcap``, ... (the stopped run's log is never overwritten)."""
+    p = Path(log_path)
+    stem = p.stem
+    for k in range(1, 1000):
+        q = p.with_name(f"{stem}-resumed{'' if k == 1 else k}{p.suffix}")
+        if not q.exists():
+            return q
+    raise InputError(str(log_path), None, "too many resumed logs beside it")
+
+
+class SimKeeper:
+    """Dry-run harness subscriber: after every checkpoint, the simulated world (pickled)
+    and what the report needs from before the run, written atomically to ``path``."""
+
+    def __init__(self, path: str | os.PathLike, sim, extra: dict):
+        self.path, self.sim, self.extra = Path(path), sim, extra
+
+    def __call__(self, topic: str, doc: dict) -> None:
+        if topic != "checkpoint":
+            return
+        t = float(doc.get("t", self.sim.clock()))
+        blob = pickle.dumps({"format": SIM_FORMAT, "t": t, "sim": self.sim, **self.extra},
+                            protocol=pickle.HIGHEST_PROTOCOL)
+        write_atomic(self.path, blob)
+
+
+def load_sim_state(path: str | os.PathLike, state: dict | None = None) -> dict:
+    """The simulated world kept beside a dry-run's log (``t``: its instrument time); if
+    ``state`` is given it must be that checkpoint's. Only open files you wrote: they are
+    pickles."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(str(path), None, "the simulated world of this dry-run is missing (it is "
+                                          "written beside the log as LOG.sim)")
+    try:
+        kept = pickle.loads(p.read_bytes())
+    except Exception as err:          # a damaged file: say so in one line
+        raise InputError(str(path), None, f"unreadable simulated world ({type(err).__name__})") from None
+    if not isinstance(kept, dict) or kept.get("format") != SIM_FORMAT:
+        raise InputError(str(path), None, "not a nanoasm simulated world")
+    if state is not None and not np.isclose(float(kept["t"]), float(state["t"]), rtol=0.0, atol=1e-6):
+        raise InputError(str(path), None, f"holds the world at t = {kept['t']:.3f} s, but the log's last "
+                                          f"checkpoint is at t = {float(state['t']):.3f} s")
+    return kept
+
+
+class ShiftedClock:
+    """An instrument whose clock goes on from a stopped run's: ``clock() + shift`` and
+    signal times shifted alike (a restarted process starts its clock at 0, while the
+    drift filter's times must go on increasing)."""
+
+    def __init__(self, instrument, shift: float):
+        self._inst, self.shift = instrument, float(shift)
+        self.config = instrument.config
+
+    def clock(self) -> float:
+        return self._inst.clock() + self.shift
+
+    def write(self, chunk):
+        block = self._inst.write(chunk)
+        return replace(block, t=np.asarray(block.t) + self.shift)
+
+    def full_scan(self, *args, **kwargs):
+        return self._inst.full_scan(*args, **kwargs)
+
+    def scan_line(self, *args, **kwargs):
+        return self._inst.scan_line(*args, **kwargs)
+
+    def signals(self):
+        return self._inst.signals()
+
+    def position(self):
+        return self._inst.position()
+
+    def park(self) -> None:
+        self._inst.park()
+
+    def __getattr__(self, name):
+        return getattr(self._inst, name)
+
+
+def clock_shift(state: dict, now: float) -> float:
+    """Shift that puts an instrument clock reading ``now`` after the checkpoint's time by
+    the wall-clock time since the checkpoint was saved."""
+    gap = max(time.time() - float(state.get("saved_at", time.time())), 0.0)
+    return float(state["t"]) + gap - now

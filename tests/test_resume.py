@@ -1,0 +1,159 @@
+"""Resuming stopped runs: from a checkpoint in memory, through the executor's state in the
+log, and a dry-run killed with SIGKILL and resumed from the command line."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from runlogkit import kill_when, particle_bowtie
+
+from nanoasm.dryrun import dry_run
+from nanoasm.errors import InputError
+from nanoasm.examples import path as example
+from nanoasm.executor.assembly import Assembly
+from nanoasm.executor.engine import RunEngine
+from nanoasm.executor.logread import read_log
+from nanoasm.executor.report import load_report
+from nanoasm.executor.resume import (ShiftedClock, clock_shift, load_sim_state, resume_point,
+                                     resumed_log_path, sim_state_path)
+from nanoasm.executor.strategy import ExecOptions
+from nanoasm.world.sim import SimulatedAFM
+
+
+def _final(sim: SimulatedAFM) -> dict[str, tuple[float, float]]:
+    return {b.id: b.at for b in sim.truth()}
+
+
+def _run_and_keep(k: int, strategy: str = "full", seed: int = 3):
+    """An uninterrupted run that keeps the world and the state at its k-th checkpoint."""
+    scene, layout = particle_bowtie()
+    sim = SimulatedAFM(scene, seed=seed)
+    kept: dict = {}
+
+    def keep(topic: str, doc: dict) -> None:
+        if topic == "checkpoint":
+            kept["n"] = kept.get("n", 0) + 1
+            if kept["n"] == k:
+                kept["state"] = json.loads(json.dumps(doc["state"]))     # as the log keeps it
+                kept["sim"] = pickle.dumps(sim)
+
+    summary = RunEngine(sim, [keep]).run(Assembly(layout, ExecOptions(strategy=strategy)).procedure(sim.config))
+    return layout, sim, summary, kept
+
+
+@pytest.mark.parametrize("strategy", ["full", "kalman"])
+def test_a_run_resumed_from_a_checkpoint_ends_as_the_uninterrupted_run(strategy):
+    layout, sim, summary, kept = _run_and_keep(3, strategy)
+    assert "state" in kept, "the run ended before its third push"
+    sim2 = pickle.loads(kept["sim"])
+    resumed = RunEngine(sim2, []).run(Assembly(layout, ExecOptions(strategy=strategy))
+                                      .resume(sim2.config, kept["state"]))
+    assert resumed.counts == summary.counts
+    assert resumed.assignment == summary.assignment and resumed.unfilled == summary.unfilled
+    assert resumed.pushed == summary.pushed
+    a, b = _final(sim), _final(sim2)
+    assert max(np.hypot(*np.subtract(a[i], b[i])) for i in a) < 1e-6
+
+
+def test_a_resume_after_a_pause_widens_the_search_and_still_finishes():
+    """The instrument's clock restarted (a new process) and ten minutes passed: the
+    shifted clock goes on, the filter's uncertainty has grown, the run ends normally."""
+    layout, sim, summary, kept = _run_and_keep(2)
+    sim2 = pickle.loads(kept["sim"])
+    sim2._clock.advance(600.0, "travel")          # the sample drifted on while nothing ran
+    restarted = ShiftedClock(sim2, -sim2.clock())  # a new process: its clock starts at 0
+    assert restarted.clock() == 0.0
+    state = {**kept["state"], "saved_at": time.time() - 600.0}
+    shifted = ShiftedClock(restarted, clock_shift(state, restarted.clock()))
+    assert shifted.clock() == pytest.approx(kept["state"]["t"] + 600.0, abs=1.0)
+    events: list[str] = []
+    resumed = RunEngine(shifted, [lambda t, d: events.append(d["text"]) if t == "event" else None]).run(
+        Assembly(layout, ExecOptions()).resume(shifted.config, state))
+    assert any("resumed from the checkpoint after push" in e for e in events)
+    assert len(resumed.assignment) == len(summary.assignment)
+    assert resumed.counts.pushes >= summary.counts.pushes
+
+
+def test_a_checkpoint_of_another_strategy_or_format_is_refused():
+    layout, _, _, kept = _run_and_keep(1)
+    with pytest.raises(ValueError, match="strategy"):
+        next(Assembly(layout, ExecOptions(strategy="kalman")).resume(None, kept["state"]))
+    with pytest.raises(ValueError, match="checkpoint"):
+        next(Assembly(layout, ExecOptions()).resume(None, {**kept["state"], "format": "x"}))
+
+
+def _dry_run_cli(args, cwd, **kw):
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    return subprocess.Popen([sys.executable, "-m", "nanoasm.cli", *args], cwd=cwd, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, **kw)
+
+
+def test_a_killed_dry_run_resumed_fills_the_slots_the_uninterrupted_run_fills(tmp_path):
+    scene, layout = particle_bowtie()
+    layout_file = tmp_path / "particles.toml"
+    layout.save(layout_file)
+    scene_file = example("bowtie_scene.toml")
+    whole = dry_run(scene, layout, seed=3, options=ExecOptions())
+
+    log = tmp_path / "run.mcap"
+    proc = _dry_run_cli(["dry-run", str(scene_file), str(layout_file), "--seed", "3", "--log", str(log)], tmp_path)
+    kill_when(proc, lambda: log.exists() and len(read_log(log, topics={"/checkpoint"}).topic("/checkpoint")) >= 2)
+    assert sim_state_path(log).exists()
+    report = tmp_path / "resumed.json"
+    done = subprocess.run([sys.executable, "-m", "nanoasm.cli", "dry-run", "--resume", str(log),
+                           "--report", str(report)], cwd=tmp_path, capture_output=True, text=True, timeout=300,
+                          env={k: v for k, v in os.environ.items() if k != "PYTHONPATH"})
+    assert done.returncode == 0, done.stderr
+    rep = load_report(report)
+    final = {b.id: b for b in rep.final_objects}
+    from nanoasm.dryrun import filled_slots
+
+    filled, errors = filled_slots(layout, rep.assignment, final)
+    assert set(filled) == set(whole.filled)
+    assert rep.counts.pushes == whole.report.counts.pushes
+    for t, e in errors.items():
+        assert e == pytest.approx(whole.errors[t], abs=0.5)
+    # the resumed run wrote its own log beside the first, which stays as it was
+    resumed_log = tmp_path / "run-resumed.mcap"
+    assert resumed_log.exists() and read_log(resumed_log).complete and not read_log(log).complete
+    assert resumed_log_path(log) == tmp_path / "run-resumed2.mcap"
+
+
+def test_resume_refuses_what_it_cannot_resume(tmp_path):
+    with pytest.raises(InputError, match="no such run log"):
+        resume_point(tmp_path / "missing.mcap")
+    finished = tmp_path / "done.mcap"
+    from runlogkit import logged_dry_run
+
+    logged_dry_run(finished)
+    with pytest.raises(InputError, match="nothing to resume"):
+        resume_point(finished)
+    with pytest.raises(InputError, match="missing"):
+        load_sim_state(tmp_path / "none.mcap.sim")
+    bad = tmp_path / "bad.sim"
+    bad.write_bytes(b"not a pickle")
+    with pytest.raises(InputError, match="unreadable"):
+        load_sim_state(bad)
+
+
+def test_resume_errors_on_the_command_line_are_one_line(tmp_path):
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    for args, text in ((["dry-run", "--resume", "nope.mcap"], "no such run log"),
+                       (["dry-run", str(example("bowtie_scene.toml")), str(example("bowtie.toml")),
+                         "--resume", "x.mcap"], "give neither"),
+                       (["run", "--instrument", str(example("instrument_ni.toml")), "--resume", "nope.mcap"],
+                        "no such run log")):
+        if "give neither" in text:
+            (tmp_path / "x.mcap").write_bytes(b"")
+        done = subprocess.run([sys.executable, "-m", "nanoasm.cli", *args], cwd=tmp_path, capture_output=True,
+                              text=True, timeout=120, env=env)
+        assert done.returncode == 1, done.stderr
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and text in lines[0], done.stderr
