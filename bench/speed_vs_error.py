@@ -172,7 +172,8 @@ def report(rows: list[dict], groups: list[dict], families, args, wall: float, pn
         "filled slot, over the seeds that filled one; *bound*: `physical_bound` of the first plan (push, "
         "the fewest ch. 5 scan lines, travel; no full scan, no settling, no mode switches); *T/bound*: "
         "instrument time over the bound; *(T-scan)/bound*: the same without the first full scan, "
-        "which the bound leaves out. Every row's figures are in "
+        "which the bound leaves out (the bound counts the fewest local scans, which open-loop does not "
+        "make, so its ratio may fall below 1). Every row's figures are in "
         f"[{csv.name}]({csv.name}).", "",
         "## Strategies at the default knobs, drift 0.3 nm/s", "",
     ]
