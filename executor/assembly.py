@@ -92,6 +92,8 @@ class Assembly:
         self.pushed: list[str] = []
         self.first_seen: dict[str, tuple[np.ndarray, float]] = {}   # full-scan position, time
         self.no_reference: set[str] = set()     # gated out once: moved on its own
+        self.troubles: dict[str, int] = {}      # pushes failed or gone astray, per object
+        self.given_up: set[str] = set()         # left where they are after max_failures
         self.failures: list[tuple[str, str]] = []
         self.drift_log: list[tuple[float, float, float]] = []
         self.filter: DriftFilter | None = None
@@ -263,13 +265,19 @@ class Assembly:
 
     def _environment(self) -> Environment:
         """The belief as the planner's environment: objects seen only in the first full
-        scan moved by their row's drift (:meth:`position`), lost ones left out."""
-        env = self.belief.environment()
-        if self.filter is None or not self.raw:
-            return env
-        objs = tuple(replace(o, at=tuple(float(v) for v in self.position(o.id))) if o.id in self.raw else o
-                     for o in env.objects)
-        return Environment(env.area, objs, env.obstacles, env.source)
+        scan moved by their row's drift (:meth:`position`), lost ones left out (where they
+        were believed to be is where the scans did not find them). Objects given up on
+        (:attr:`ExecOptions.max_failures`) are never assigned: they stay, obstacles."""
+        objs = []
+        for o in self.belief.objects.values():
+            if o.id in self.belief.lost:
+                continue
+            if o.id in self.raw and self.filter is not None:
+                o = replace(o, at=tuple(float(v) for v in self.position(o.id)))
+            if o.id in self.given_up:
+                o = replace(o, confidence=0.0)
+            objs.append(o)
+        return Environment(self.belief.area, tuple(objs), self.belief.obstacles, "belief")
 
     def _reference_position(self, obj_id: str) -> tuple[np.ndarray, float]:
         """Layout position of a reference object from the full scan alone, and the time
@@ -770,12 +778,26 @@ class Assembly:
             outcome = yield from self.push(op)
             i += 1
             done += 1
+            off, limit = 0.0, math.inf
             if self.strategy.scans:
                 lost = outcome == "lost"
                 off = math.inf if lost else math.dist(self.belief[op.object].at, op.expect.at)
                 # a rod's pushes scatter more (pivot, path): re-aiming absorbs up to L/4
                 o = self.belief[op.object]
                 limit = max(self.options.replan_after, o.length / 4) if o.kind == "rod" else self.options.replan_after
+            # an object whose pushes fail, or leave it far off course, again and again
+            # (stuck, or against something nobody sees) is not pushed for ever; a rod's
+            # course is replanned as a matter of course (its pushes scatter), so for a rod
+            # only failed pushes count
+            astray_push = outcome == "ok" and off > limit and self.belief[op.object].kind != "rod"
+            if outcome == "failed" or astray_push:
+                self.troubles[op.object] = self.troubles.get(op.object, 0) + 1
+                if self.troubles[op.object] == self.options.max_failures:
+                    self.given_up.add(op.object)
+                    yield Msg("event", (f"gave up on {op.object} after {self.troubles[op.object]} pushes "
+                                        f"failed or went astray: it stays where it is, an obstacle "
+                                        f"to the rest",), {"level": "warn"})
+            if self.strategy.scans:
                 astray = o.kind == "rod" and not lost and not self._course_clear(op.object, ops[i:])
                 if lost or (self.strategy.replans and (outcome == "failed" or off > limit or astray)):
                     w0 = time.perf_counter()
@@ -898,6 +920,7 @@ class Assembly:
             "raw": sorted(self.raw), "first_seen": {k: [float(a[0]), float(a[1]), float(ts)]
                                                     for k, (a, ts) in self.first_seen.items()},
             "no_reference": sorted(self.no_reference), "pushed": list(self.pushed),
+            "troubles": dict(self.troubles), "given_up": sorted(self.given_up),
             "moving": sorted(self.moving), "preload_factor": dict(self.preload_factor),
             "plan_start": {str(k): [list(at), ang] for k, (at, ang) in self._plan_start.items()},
             "creep_anchor": None if self._creep_anchor is None else [float(v) for v in self._creep_anchor],
@@ -930,6 +953,8 @@ class Assembly:
         self.raw = set(st["raw"])
         self.first_seen = {k: (np.array(v[:2], float), float(v[2])) for k, v in st["first_seen"].items()}
         self.no_reference = set(st["no_reference"])
+        self.troubles = {k: int(v) for k, v in st["troubles"].items()}
+        self.given_up = set(st["given_up"])
         self.pushed = list(st["pushed"])
         self.moving = set(st["moving"])
         self.preload_factor = {k: float(v) for k, v in st["preload_factor"].items()}

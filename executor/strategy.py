@@ -76,6 +76,10 @@ class ExecOptions:
         21.2-26.9 nm at 0.01).
     max_corrections : int
         Extra pushes allowed to bring an object that missed its slot back in.
+    max_failures : int
+        Pushes of one object that fail or leave it off course (``replan_after``) after
+        which it is left where it is: it becomes an obstacle to the planner and its slot
+        goes to another object.
     replan_after : float
         With replanning (``full``): an object this far off its planned course after a
         push (nm), or a failed push, has the rest planned again; smaller deviations are
@@ -100,6 +104,7 @@ class ExecOptions:
     drift_q: float = 1e-6
     drift_q_offset: float = 0.1
     max_corrections: int = 2
+    max_failures: int = 3
     replan_after: float = 60.0
     lost_radius: float = 1500.0
     push_speed: float | None = 200.0
@@ -117,7 +122,7 @@ class ExecOptions:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-        if self.max_corrections < 0 or self.chunk < 16:
-            raise ValueError("max_corrections must be >= 0 and chunk >= 16")
+        if self.max_corrections < 0 or self.chunk < 16 or self.max_failures < 1:
+            raise ValueError("max_corrections must be >= 0, max_failures >= 1 and chunk >= 16")
         if self.push_speed is not None and not (math.isfinite(self.push_speed) and self.push_speed > 0):
             raise ValueError(f"push_speed must be positive, got {self.push_speed!r}")
