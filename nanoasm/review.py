@@ -213,9 +213,9 @@ def print_review(rev: Review, console=None) -> None:
         table.add_row("[bold red]incomplete[/]", _incomplete(rev))
     elif rev.stop is not None and rev.stop.get("state") != "done":
         table.add_row("[bold red]stopped[/]", f"{rev.stop.get('state')}: {rev.stop.get('reason')}")
-    for k in ("strategy", "seed", "command"):
+    for k in ("strategy", "seed", "command", "resumed_from"):
         if rev.metadata.get(k):
-            table.add_row(k, rev.metadata[k])
+            table.add_row(k.replace("_", " "), rev.metadata[k])
     for s in rev.slots:
         err = "no pose" if s.error is None else f"{s.error:.1f} nm"
         table.add_row(f"slot {s.target}", f"{'filled' if s.filled else 'missed'} by {s.object}: {err} off "

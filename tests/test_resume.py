@@ -123,6 +123,9 @@ def test_a_killed_dry_run_resumed_fills_the_slots_the_uninterrupted_run_fills(tm
     # the resumed run wrote its own log beside the first, which stays as it was
     resumed_log = tmp_path / "run-resumed.mcap"
     assert resumed_log.exists() and read_log(resumed_log).complete and not read_log(log).complete
+    from nanoasm.review import review
+
+    assert review(resumed_log).metadata.get("resumed_from") == str(log)
     assert resumed_log_path(log) == tmp_path / "run-resumed2.mcap"
 
 
