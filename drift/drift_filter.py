@@ -139,6 +139,7 @@ class DriftFilter:
         self._anchor = (0, 0.0)  # history index and tau of the last accepted state
         self._streak: list[_Batch] = []  # batches rejected since then
         self.resumed_measurements = 0    # measurements made before a resume
+        self._offset_cache: tuple | None = None
 
     # -- saving and resuming ------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -236,9 +237,14 @@ class DriftFilter:
             lies at ``p + offset`` in the scanner frame. The covariance includes the
             creep amplitude's uncertainty (``creep.amplitude_std``).
         """
-        tau, _, x, L, _ = self._propagate(t)
-        return OffsetEstimate(x[:2] + self.creep.offset(tau),
-                              _gram(np.hstack([L[:2], self.creep.cov_sqrt(tau)])))
+        c = self.creep
+        key = (float(t), self._tau, self._x.tobytes(), self._L.tobytes(), len(c), c.frozen.tobytes(),
+               c._times[-1] if len(c) else None)
+        if self._offset_cache is None or self._offset_cache[0] != key:
+            tau, _, x, L, _ = self._propagate(t)
+            # the executor asks for one time many times over
+            self._offset_cache = (key, x[:2] + c.offset(tau), _gram(np.hstack([L[:2], c.cov_sqrt(tau)])))
+        return OffsetEstimate(self._offset_cache[1].copy(), self._offset_cache[2].copy())
 
     def r_max(self, t: float, k: float = 3.0) -> float:
         """Largest expected drift error radius (nm) at ``t``: ``k √λ_max`` of the offset
