@@ -442,7 +442,8 @@ def dry_run_cmd(
 def run_cmd(
     layout_file: Annotated[Optional[Path], typer.Argument(metavar="LAYOUT", help="Layout (TOML/JSON); "
                                                           "not with --resume.")] = None,
-    instrument: Annotated[Path, typer.Option(help="Instrument file (nanoasm.instrument/1).")] = None,
+    instrument: Annotated[Optional[Path], typer.Option(help="Instrument file (nanoasm.instrument/1); "
+                                                           "required.")] = None,
     strategy: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full or anchor.")] = "full",
     report: Annotated[Optional[Path], typer.Option(help="Write the report (JSON) here.")] = None,
     log: LogFile = None,
