@@ -109,7 +109,7 @@ class SimKeeper:
         t = float(doc.get("t", self.sim.clock()))
         blob = pickle.dumps({"format": SIM_FORMAT, "t": t, "sim": self.sim, **self.extra},
                             protocol=pickle.HIGHEST_PROTOCOL)
-        write_atomic(self.path, blob)
+        write_atomic(self.path, blob, mode=0o600)     # a pickle: for its owner alone
 
 
 def load_sim_state(path: str | os.PathLike, state: dict | None = None) -> dict:

@@ -668,7 +668,10 @@ def main(argv: list[str] | None = None) -> int:
     command = typer.main.get_command(app)
     args = sys.argv[1:] if argv is None else argv
     try:
-        command.main(args=args, prog_name="nanoasm", standalone_mode=False)
+        rv = command.main(args=args, prog_name="nanoasm", standalone_mode=False)
+        if rv == 130:           # typer turns Ctrl-C into this return value
+            print("nanoasm: interrupted", file=sys.stderr)
+            return 130
     except InputError as exc:
         print(f"nanoasm: error: {exc.line()}", file=sys.stderr)
         return 1

@@ -131,8 +131,17 @@ def type_name(value: Any) -> str:
     return type(value).__name__
 
 
-def write_atomic(path: str | os.PathLike, data: str | bytes) -> None:
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def write_atomic(path: str | os.PathLike, data: str | bytes, mode: int | None = None) -> None:
     """Write ``data`` to ``path`` so that the file is either complete or absent.
+
+    ``mode``: the file's permissions (default: as ``open()`` would create it, under the
+    process's umask).
 
     The bytes go to a temporary file in the same folder, are flushed to disk and then
     renamed over ``path``; a crash half-way leaves no partial output.
@@ -144,6 +153,8 @@ def write_atomic(path: str | os.PathLike, data: str | bytes) -> None:
     payload = data.encode("utf-8") if isinstance(data, str) else data
     fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
     try:
+        # mkstemp makes the file private; an output gets the mode open() would give it
+        os.chmod(tmp, mode if mode is not None else 0o666 & ~_umask())
         with os.fdopen(fd, "wb") as fh:
             fh.write(payload)
             fh.flush()

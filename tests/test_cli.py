@@ -152,3 +152,30 @@ def test_dry_run_refuses_bad_options(capsys, tmp_path):
     assert code == 1 and "give both a scene and a layout" in one_error_line(err)
     code, _, err = run(capsys, "dry-run", "--report", str(tmp_path / "r.txt"))
     assert code == 1 and "report must end in .json" in one_error_line(err)
+
+
+def test_ctrl_c_stops_a_dry_run_with_exit_130_and_one_line(tmp_path):
+    import signal
+    import time
+
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    proc = subprocess.Popen([sys.executable, "-m", "nanoasm.cli", "dry-run"], cwd=tmp_path, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    time.sleep(4.0)                       # into the full scan or the plan
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines()[-1] == "nanoasm: interrupted"
+
+
+def test_outputs_are_written_with_the_usual_permissions(tmp_path):
+    from nanoasm.fileio import write_atomic
+
+    mask = os.umask(0o022)
+    try:
+        write_atomic(tmp_path / "a.txt", "x")
+        write_atomic(tmp_path / "b.bin", b"x", mode=0o600)
+    finally:
+        os.umask(mask)
+    assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
+    assert (tmp_path / "b.bin").stat().st_mode & 0o777 == 0o600
