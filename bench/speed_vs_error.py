@@ -7,7 +7,8 @@ Dry-runs (``nanoasm.sweep``) of the scene families of ``nanoasm.world.families``
 - the ``full`` strategy with one knob at a time moved off its default (scan-line length
   factor, reference-scan interval, push speed, rod push step, the drift filter's two
   process noises, the replanning threshold, the planner's time budget), to the
-  multiples of its default in ``FACTORS``;
+  multiples of its default in ``FACTORS``, and the samples per scan line
+  (``scan_spacing``, 0.5 and 2 nm between samples);
 - every strategy at drift 0.05 and 1 nm/s.
 
 Writes the medians over seeds as tables with the physical bound of each family
@@ -51,6 +52,8 @@ FACTORS = {
 }
 KNOBS = {k: tuple(float(f"{f * getattr(ExecOptions() if k in sw.EXEC_KNOBS else PlanOptions(), k):.6g}")
                   for f in fs) for k, fs in FACTORS.items()}
+# the samples per scan line: nm between them (default None, min(1 nm, R/10)), not a multiple
+KNOBS["scan_spacing"] = (0.5, 2.0)
 DRIFTS = (0.05, 1.0)
 QUICK = dict(families=("tiny", "sparse"), seeds=(1,), knobs={k: v[:1] for k, v in KNOBS.items()}, drifts=(1.0,))
 STYLE = {"open-loop": "tab:red", "local-scan": "tab:orange", "kalman": "tab:blue", "full": "tab:green",

@@ -97,7 +97,7 @@ class Assembly(DriftSteps, ScanSteps, RunState):
         self.first_plan: Plan | None = None
         self.anchor_offset = np.zeros(2)
         self.config = None
-        self.scan_opts = ScanOptions()
+        self.scan_opts = ScanOptions(spacing=self.options.scan_spacing)
         self.raw: set[str] = set()
         self.moving: set[str] = set()            # objects the current plan still moves
         self._plan_start: dict[int, tuple] = {}  # pose each operation expects to start from

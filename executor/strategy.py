@@ -64,6 +64,9 @@ class ExecOptions:
     line_factor : float
         Multiplies the r_max that sets local-scan line lengths (shorter lines are faster
         but miss more often).
+    scan_spacing : float or None
+        Distance between the samples of a local-scan line, nm (None: ``min(1, R / 10)``
+        for an object of radius ``R``); the count of samples per line, so its time.
     reference_every : float
         A drift reference is measured before a push when the last one is older than
         this, s (kalman, full, anchor).
@@ -100,6 +103,7 @@ class ExecOptions:
     max_drift_rate: float = 0.5
     r_max_floor: float = 15.0
     line_factor: float = 1.0
+    scan_spacing: float | None = None
     reference_every: float = 120.0
     drift_q: float = 1e-6
     drift_q_offset: float = 0.1
@@ -124,5 +128,7 @@ class ExecOptions:
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
         if self.max_corrections < 0 or self.chunk < 16 or self.max_failures < 1:
             raise ValueError("max_corrections must be >= 0, max_failures >= 1 and chunk >= 16")
+        if self.scan_spacing is not None and not (math.isfinite(self.scan_spacing) and self.scan_spacing > 0):
+            raise ValueError(f"scan_spacing must be positive, got {self.scan_spacing!r}")
         if self.push_speed is not None and not (math.isfinite(self.push_speed) and self.push_speed > 0):
             raise ValueError(f"push_speed must be positive, got {self.push_speed!r}")
