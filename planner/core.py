@@ -30,6 +30,12 @@ from .sequence import order
 Progress = Callable[[int, int], None]
 
 
+#: How far (nm of radius) an object larger than its slot may reach beyond the slot's
+#: footprint at the goal: identification measures diameters to about 1 %, and a slot
+#: may touch a keep-out.
+SIZE_SLACK = 1.0
+
+
 @dataclass
 class PlanStats:
     """What planning cost and produced, for the CLI summary and the benchmarks."""
@@ -101,7 +107,11 @@ class _Session:
         return ok
 
     def move_particle(self, obj: EnvObject, goal: tuple[float, float], target: str | None) -> bool:
-        mover = Mover(self.space, obj.id, obj.radius)
+        # an object identified a hair larger than its slot may still arrive where the slot
+        # touches a keep-out; more than SIZE_SLACK larger, it would enter the keep-out
+        slot = self.targets.get(target) if target is not None else None
+        slack = min(obj.radius - slot.radius, SIZE_SLACK) if slot is not None else 0.0
+        mover = Mover(self.space, obj.id, obj.radius, goal_slack=slack)
         path = centre_path(mover, obj.at, goal, self.options, self._tip_ok(obj))
         if path is None:
             return False

@@ -41,9 +41,13 @@ OPTIMIZING = {"rrtstar", "informedrrtstar", "bitstar", "prmstar", "fmt"}
 class Mover:
     """Clearance tests for one object of radius ``radius`` moving through ``space``."""
 
-    def __init__(self, space: FreeSpace, body_id: str, radius: float):
+    def __init__(self, space: FreeSpace, body_id: str, radius: float, goal_slack: float = 0.0):
         self.space, self.id, self.radius = space, body_id, radius
         self.exempt: frozenset[int] = frozenset()
+        #: how much larger than its slot the object is (radius, nm): arriving at the goal
+        #: it need only keep the slot's own footprint out of contact (a slot may touch a
+        #: keep-out, and an object a hair larger than the slot is still admitted)
+        self.goal_slack = max(float(goal_slack), 0.0)
 
     def lying_on(self, p: Point) -> None:
         """Let contact-only checks ignore the fixed things the object at ``p`` already
@@ -67,12 +71,21 @@ class Mover:
         only avoid contact (crowded starts and goals), the rest full clearance."""
         length = math.dist(a, b)
         if relax_a + relax_b >= length:
+            if relax_b and self.goal_slack and not relax_a:
+                return self._arriving(a, b)
             return self.segment(a, b, clearance=0.0 if relax_a or relax_b else None)
         ux, uy = (b[0] - a[0]) / length, (b[1] - a[1]) / length
         a2 = (a[0] + ux * relax_a, a[1] + uy * relax_a)
         b2 = (b[0] - ux * relax_b, b[1] - uy * relax_b)
         return ((not relax_a or self.segment(a, a2, clearance=0.0)) and self.segment(a2, b2)
-                and (not relax_b or self.segment(b2, b, clearance=0.0)))
+                and (not relax_b or self._arriving(b2, b)))
+
+    def _arriving(self, a: Point, b: Point) -> bool:
+        """Contact-only check of the last part of a move into the goal, with the radius
+        less :attr:`goal_slack`."""
+        geom = shapely.Point(a) if a == b else shapely.LineString([a, b])
+        exempt = self.exempt
+        return self.space.is_free(geom, self.radius - self.goal_slack, (self.id,), exempt, 0.0)
 
     def slack(self, p: Point) -> float:
         return self.space.slack(shapely.Point(p), self.radius, (self.id,))

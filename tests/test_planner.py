@@ -225,7 +225,7 @@ def test_every_planner_finds_a_detour_and_returns(tmp_path):
         " (Keepout(wall),), Tolerance())\n"
         "env = Environment((5000.0, 5000.0), (EnvObject('o1', 'particle', (1000.0, 2500.0), 100.0),))\n"
         "for name in sys.argv[1:]:\n"
-        "    plan, _ = plan_assembly(lay, env, PlanOptions(planner=name, time_budget=0.2))\n"
+        "    plan, _ = plan_assembly(lay, env, PlanOptions(planner=name, time_budget=1.0))\n"
         "    assert not plan.unfilled, name\n"
         "print('ok')\n"
     )
