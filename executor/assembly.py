@@ -389,6 +389,7 @@ class Assembly(DriftSteps, ScanSteps, RunState):
                            + (", its course now too close to a neighbour" if astray else ""))
                     yield Msg("event", (f"replanned after {op.object} {outcome} ({why}): "
                                         f"{len(ops)} push(es) remain",))
+                    yield Msg("emit", ("plan", rest.plan.to_dict()))
                 elif op.target is not None and all(o.object != op.object for o in ops[i:]):
                     extra = self._correction(op, corrections)
                     if extra:

@@ -41,12 +41,12 @@ TOPICS: tuple[tuple[str, str, str], ...] = (
     ("/layout", "foxglove.SceneUpdate", "slots of the layout, keep-outs and the working area"),
     ("/scan", "foxglove.Grid", "the full scan: heights (nm, float32) on the layout frame"),
     ("/objects", "foxglove.SceneUpdate", "objects identified in the full scan"),
-    ("/plan/paths", "foxglove.SceneUpdate", "tip paths of the first plan"),
+    ("/plan/paths", "foxglove.SceneUpdate", "tip paths of the plan, again at every replan"),
     ("/belief", "foxglove.SceneUpdate", "the executor's belief: every object's believed pose, after each push"),
     ("/tip_paths", "foxglove.SceneUpdate", "the tip path of every push as executed, coloured by verdict"),
     ("/local_scan/lines", "foxglove.SceneUpdate", "the latest local-scan line, layout frame"),
     ("/environment", "nanoasm.Environment", "identified objects and obstacles (nanoasm.env/1)"),
-    ("/plan", "nanoasm.Plan", "the first plan (nanoasm.plan/1)"),
+    ("/plan", "nanoasm.Plan", "the first plan and every replan (nanoasm.plan/1)"),
     ("/push", "nanoasm.Push", "each push: operation, verdict, peak force, start pose, belief after"),
     ("/drift", "nanoasm.DriftEstimate", "drift estimate after each filter update, with covariance"),
     ("/local_scan", "nanoasm.ScanLine", "each local-scan line: end points (scanner frame) and heights, "
@@ -301,7 +301,7 @@ class RunLog:
             self._plan_attached = True
             self.attach("plan.json", to_json(doc))
         paths = [(f"op{op.get('id')}", op.get("tip_path") or ()) for op in doc.get("operations", ())]
-        self._log("/plan/paths", self._paths_scene(paths, (0.6, 0.6, 1.0, 0.6), t), t)
+        self._log("/plan/paths", self._paths_scene(paths, (0.6, 0.6, 1.0, 0.6), t, clear=True), t)
 
     def _on_push(self, doc: dict, t: float | None) -> None:
         self._pushes += 1
@@ -415,8 +415,11 @@ class RunLog:
         deletions = [SceneEntityDeletion(timestamp=self._stamp(t), id=f"{prefix}:{i}") for i in delete]
         return SceneUpdate(entities=entities, deletions=deletions)
 
-    def _paths_scene(self, paths, colour, t: float | None, thickness: float = 2.0):
-        from foxglove.messages import Color, LinePrimitive, LinePrimitiveLineType, SceneUpdate
+    def _paths_scene(self, paths, colour, t: float | None, thickness: float = 2.0, clear: bool = False):
+        """Tip paths as line strips; ``clear``: first delete every path the topic drew
+        before (a replan's paths replace the last plan's)."""
+        from foxglove.messages import (Color, LinePrimitive, LinePrimitiveLineType, SceneEntityDeletion,
+                                       SceneEntityDeletionType, SceneUpdate)
 
         col = Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3])
         entities = []
@@ -428,7 +431,9 @@ class RunLog:
                                  thickness=thickness, scale_invariant=True,
                                  points=[_point(p[0], p[1], 1.0) for p in pts], color=col)
             entities.append(self._entity(ident, t, lines=[line]))
-        return SceneUpdate(entities=entities)
+        deletions = ([SceneEntityDeletion(timestamp=self._stamp(t), type=SceneEntityDeletionType.All)]
+                     if clear else [])
+        return SceneUpdate(entities=entities, deletions=deletions)
 
     def _layout_scene(self, layout):
         """Slots as outlines (circles, capsules), keep-outs, and the working area."""

@@ -190,12 +190,22 @@ class Runaway(Exception):
 def test_a_stuck_push_along_the_cantilever_is_not_retried_forever():
     """With replanning a push that keeps failing was once planned again and again (3048
     failed pushes and 3049 replans of this particle); the watch stops such a run early."""
+    seen = {"plan": 0, "replanned": 0, "gave up": 0}
+
     def watch(topic: str, doc: dict) -> None:
         if topic == "checkpoint" and doc["counts"]["pushes"] > 20:
             raise Runaway(f"{doc['counts']['pushes']} pushes of one stuck particle")
+        if topic == "plan":
+            seen["plan"] += 1
+        if topic == "event":
+            for key in ("replanned", "gave up"):
+                seen[key] += doc["text"].startswith(key)
 
     out = dryrun.dry_run(*_stuck_case(), seed=1, options=ExecOptions(strategy="full"), subscribers=[watch])
     assert 1 <= out.report.counts.failed_pushes <= 10
+    # every replan is logged as a plan of its own; stuck objects were given up on
+    assert seen["replanned"] >= 1 and seen["plan"] == 1 + seen["replanned"]
+    assert seen["gave up"] >= 1
 
 
 # -- objects touching --------------------------------------------------------------------
