@@ -31,14 +31,14 @@ SIM_FORMAT = "nanoasm.simstate/1"
 
 @dataclass(frozen=True)
 class ResumePoint:
-    """What a log offers for resuming: the last checkpoint's state and the run's inputs."""
+    """What a log offers for resuming: the last checkpoint's state (with the identified
+    environment and the first plan, ``env`` and ``first_plan``) and the run's inputs."""
 
     path: str
     state: dict
     layout: Any                          # cad.layout.Layout
     metadata: dict[str, str]             # the log's "nanoasm" metadata record
     scene: Any = None                    # world.scene.Scene (dry-runs)
-    complete: bool = False               # the log ended normally (nothing to resume)
 
 
 def resume_point(path: str | os.PathLike, at: float | None = None) -> ResumePoint:
@@ -53,14 +53,14 @@ def resume_point(path: str | os.PathLike, at: float | None = None) -> ResumePoin
     p = Path(path)
     if not p.is_file():
         raise InputError(str(path), None, "no such run log")
-    log = read_log(p, topics={"/checkpoint", "/result"})
+    log = read_log(p, topics={"/checkpoint", "/result", "/environment", "/plan"})
     if not log.channels and not log.attachments:
         raise InputError(str(path), None, f"not a readable run log ({log.problem or 'no records'})")
     if log.last("/result") is not None:
         raise InputError(str(path), None, "the run finished; there is nothing to resume")
-    ckpts = [m for m in log.topic("/checkpoint") if isinstance(m.data, dict) and "state" in m.data]
+    ckpts = [m for m in log.topic("/checkpoint") if isinstance(m.data, dict) and "format" in m.data]
     if at is not None:
-        ckpts = [m for m in ckpts if abs(float(m.data["state"]["t"]) - at) <= 1e-6]
+        ckpts = [m for m in ckpts if abs(float(m.data["t"]) - at) <= 1e-6]
     ckpt = ckpts[-1] if ckpts else None
     if ckpt is None and at is not None:
         raise InputError(str(path), "/checkpoint", f"no checkpoint at t = {at:.3f} s, where the kept "
@@ -74,8 +74,12 @@ def resume_point(path: str | os.PathLike, at: float | None = None) -> ResumePoin
     layout = layout_from_dict(layout_doc, f"{path}: layout.json")
     scene_doc = log.attachment_json("scene.json")
     scene = scene_from_dict(scene_doc, f"{path}: scene.json") if scene_doc is not None else None
-    return ResumePoint(str(path), ckpt.data["state"], layout, dict(log.metadata.get("nanoasm", {})), scene,
-                       log.complete)
+    env, plan = log.topic("/environment"), log.topic("/plan")
+    if not env or not plan:
+        raise InputError(str(path), "/environment" if not env else "/plan",
+                         "the log lacks what the run identified or planned first")
+    state = {**ckpt.data, "env": env[0].data, "first_plan": plan[0].data}
+    return ResumePoint(str(path), state, layout, dict(log.metadata.get("nanoasm", {})), scene)
 
 
 def sim_state_path(log_path: str | os.PathLike) -> Path:

@@ -7,12 +7,11 @@ writes what :meth:`RunState._restore` reads back (see :mod:`nanoasm.executor.res
 from __future__ import annotations
 
 import time
-from dataclasses import replace
 
 import numpy as np
 
 from nanoasm.drift import DriftFilter, DriftFilterParams
-from nanoasm.planner import Operation, Plan
+from nanoasm.planner import Operation
 
 from .belief import Belief
 
@@ -22,27 +21,24 @@ class RunState:
 
     def _checkpoint(self, ops: list[Operation], i: int, done: int, corrections: dict[str, int],
                     t: float) -> dict:
-        return {"t": t, "remaining": [o.to_dict() for o in ops[i:]], "belief": self.belief.to_dict(),
-                "counts": dict(self.counts), "times": dict(self.times), "pushed": list(self.pushed),
-                "drift": self.drift_log[-1] if self.drift_log else None,
-                "state": self.state_dict(ops[i:], done, corrections, t)}
+        """The checkpoint document: :meth:`state_dict` and the latest drift estimate."""
+        return {**self.state_dict(ops[i:], done, corrections, t),
+                "drift": self.drift_log[-1] if self.drift_log else None}
 
     def state_dict(self, remaining: list[Operation], done: int, corrections: dict[str, int],
                    t: float) -> dict:
-        """Everything :meth:`resume` needs to go on after ``done`` operations of the
-        current plan, ``remaining`` to run (JSON types, lossless)."""
-        def plan_doc(plan: Plan | None, ops=None) -> dict | None:
-            if plan is None:
-                return None
-            return (replace(plan, operations=tuple(ops)) if ops is not None else plan).to_dict()
-
+        """What :meth:`resume` needs to go on after ``done`` operations of the current plan,
+        ``remaining`` to run (JSON types, lossless). What never changes during a run, the
+        identified environment and the first plan, is not repeated here: a run log holds
+        them once (``/environment``, the first ``/plan``), and :meth:`_restore` takes them
+        as ``env`` and ``first_plan`` beside the state
+        (:func:`nanoasm.executor.resume.resume_point` puts them there)."""
         return {
             "format": "nanoasm.checkpoint/1", "t": t, "saved_at": time.time(), "strategy": self.strategy.value,
             "epoch": self.epoch, "origin": [float(v) for v in self.origin],
-            "env": self.env.to_dict(), "first_plan": plan_doc(self.first_plan),
-            "plan": plan_doc(self.replanner.plan), "base": (self.replanner.base.to_dict()
-                                                            if self.replanner.base is not None else None),
-            "remaining": plan_doc(self.first_plan, remaining), "done": done,
+            "plan": None if self.replanner.plan is None else self.replanner.plan.to_dict(),
+            "base": None if self.replanner.base is None else self.replanner.base.to_dict(),
+            "remaining": [o.to_dict() for o in remaining], "done": done,
             "corrections": dict(corrections), "belief": self.belief.state_dict(),
             "filter": self.filter.state_dict() if self.filter is not None else None,
             "raw": sorted(self.raw), "first_seen": {k: [float(a[0]), float(a[1]), float(ts)]
@@ -72,7 +68,8 @@ class RunState:
         self.first_plan = plan_from_dict(st["first_plan"], "checkpoint")
         self.replanner.plan = plan_from_dict(st["plan"], "checkpoint") if st["plan"] else None
         self.replanner.base = environment_from_dict(st["base"], "checkpoint") if st["base"] else None
-        remaining = list(plan_from_dict(st["remaining"], "checkpoint").operations)
+        carrier = st["plan"] or st["first_plan"]       # a plan document around the operations
+        remaining = list(plan_from_dict({**carrier, "operations": st["remaining"]}, "checkpoint").operations)
         self.belief = Belief.from_state(st["belief"])
         if st["filter"] is not None:
             o = self.options

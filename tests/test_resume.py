@@ -38,10 +38,14 @@ def _run_and_keep(k: int, strategy: str = "full", seed: int = 3):
     kept: dict = {}
 
     def keep(topic: str, doc: dict) -> None:
+        # what resume_point takes from a log: a checkpoint, the environment and the first plan
+        if topic in ("environment", "plan") and topic not in kept:
+            kept[topic] = json.loads(json.dumps(doc))
         if topic == "checkpoint":
             kept["n"] = kept.get("n", 0) + 1
             if kept["n"] == k:
-                kept["state"] = json.loads(json.dumps(doc["state"]))     # as the log keeps it
+                kept["state"] = {**json.loads(json.dumps(doc)), "env": kept["environment"],
+                                 "first_plan": kept["plan"]}
                 kept["sim"] = pickle.dumps(sim)
 
     summary = RunEngine(sim, [keep]).run(Assembly(layout, ExecOptions(strategy=strategy)).procedure(sim.config))
