@@ -379,11 +379,12 @@ class Assembly(DriftSteps, ScanSteps, RunState):
                 astray = o.kind == "rod" and not lost and not self._course_clear(op.object, ops[i:])
                 if lost or (self.strategy.replans and (outcome == "failed" or off > limit or astray)):
                     w0 = time.perf_counter()
-                    rest = self.replanner.remainder(self._environment(), done, force=True)
+                    now = self._environment()
+                    rest = self.replanner.remainder(now, done, force=True)
                     self.wall["plan"] += time.perf_counter() - w0
                     self.counts["replans"] += 1
                     ops, i, done = list(rest.plan.operations), 0, 0
-                    self._plan_start = self._starts(self._environment(), ops)
+                    self._plan_start = self._starts(now, ops)
                     self.moving = {o.object for o in ops}
                     why = ("lost" if lost else f"{off:.0f} nm off course"
                            + (", its course now too close to a neighbour" if astray else ""))

@@ -41,11 +41,16 @@ class ResumePoint:
     scene: Any = None                    # world.scene.Scene (dry-runs)
 
 
-def resume_point(path: str | os.PathLike, at: float | None = None) -> ResumePoint:
-    """Read ``path`` (a run log, complete or cut short) for resuming from its last
-    checkpoint, or from the one at instrument time ``at`` (a dry-run's kept world may be
-    one checkpoint behind the log, if the run was killed between the two writes).
-    InputError naming the file and the problem when it cannot be resumed."""
+#: What resumes each kind of run log.
+RESUMED_BY = {"dry-run": "nanoasm dry-run --resume", "run": "nanoasm run --resume"}
+
+
+def resume_point(path: str | os.PathLike, kind: str, at: float | None = None) -> ResumePoint:
+    """Read ``path`` (the log of a ``kind`` run, "dry-run" or "run", complete or cut short)
+    for resuming from its last checkpoint, or from the one at instrument time ``at`` (a
+    dry-run's kept world may be one checkpoint behind the log, if the run was killed
+    between the two writes). InputError naming the file and the problem when it cannot be
+    resumed."""
     from nanoasm.cad.layout import layout_from_dict
     from nanoasm.executor.logread import read_log
     from nanoasm.world.scene import scene_from_dict
@@ -56,6 +61,10 @@ def resume_point(path: str | os.PathLike, at: float | None = None) -> ResumePoin
     log = read_log(p, topics={"/checkpoint", "/result", "/environment", "/plan"})
     if not log.channels and not log.attachments:
         raise InputError(str(path), None, f"not a readable run log ({log.problem or 'no records'})")
+    logged = log.metadata.get("nanoasm", {}).get("kind")
+    if logged != kind:
+        other = RESUMED_BY.get(logged or "", "")
+        raise InputError(str(path), None, f"not a {kind}'s log" + (f" (resume it with {other})" if other else ""))
     if log.last("/result") is not None:
         raise InputError(str(path), None, "the run finished; there is nothing to resume")
     ckpts = [m for m in log.topic("/checkpoint") if isinstance(m.data, dict) and "format" in m.data]

@@ -385,10 +385,10 @@ def dry_run_cmd(
         if not resume.is_file():
             raise InputError(str(resume), None, "no such run log")
         kept = load_sim_state(sim_state_path(resume))
-        point = resume_point(resume, at=float(kept["t"]))
+        point = resume_point(resume, "dry-run", at=float(kept["t"]))
         meta = point.metadata
-        if meta.get("kind") != "dry-run" or point.scene is None:
-            raise InputError(str(resume), None, "not a dry-run's log (resume a run with nanoasm run --resume)")
+        if point.scene is None:
+            raise InputError(str(resume), "scene.json", "the log has no scene attached")
         strategy = point.state["strategy"]
         seed = int(meta["seed"]) if meta.get("seed", "None") not in ("None", "") else None
         log = log or resumed_log_path(resume)
@@ -471,9 +471,7 @@ def run_cmd(
     if resume is not None:
         if layout_file is not None:
             raise InputError(None, "--resume", "takes the layout from the log; give no LAYOUT")
-        point = resume_point(resume)
-        if point.metadata.get("kind") != "run":
-            raise InputError(str(resume), None, "not a run's log (resume a dry-run with nanoasm dry-run --resume)")
+        point = resume_point(resume, "run")
         layout, strategy = point.layout, point.state["strategy"]
         layout_file = Path(point.metadata.get("layout", "layout.json"))
         log = log or resumed_log_path(resume)

@@ -135,13 +135,15 @@ def test_a_killed_dry_run_resumed_fills_the_slots_the_uninterrupted_run_fills(tm
 
 def test_resume_refuses_what_it_cannot_resume(tmp_path):
     with pytest.raises(InputError, match="no such run log"):
-        resume_point(tmp_path / "missing.mcap")
+        resume_point(tmp_path / "missing.mcap", "dry-run")
     finished = tmp_path / "done.mcap"
     from runlogkit import logged_dry_run
 
     logged_dry_run(finished)
     with pytest.raises(InputError, match="nothing to resume"):
-        resume_point(finished)
+        resume_point(finished, "dry-run")
+    with pytest.raises(InputError, match="not a run's log .resume it with nanoasm dry-run --resume"):
+        resume_point(finished, "run")
     with pytest.raises(InputError, match="missing"):
         load_sim_state(tmp_path / "none.mcap.sim")
     bad = tmp_path / "bad.sim"
