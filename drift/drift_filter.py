@@ -24,7 +24,7 @@ from .gating import (
     select_consistent,
     weighted_mean,
 )
-from .kalman import H_OFFSET, STATE_DIM, process_noise_sqrt, symmetrize
+from .kalman import H_OFFSET, STATE_DIM, _check_state, process_noise_sqrt, symmetrize
 from .records import HistoryEntry, JointMeasurement, Measurement, OffsetEstimate
 from .square_root import predict_sqrt, psd_sqrt, tria, update_sqrt
 
@@ -156,10 +156,8 @@ class DriftFilter:
         """A filter that goes on from :meth:`state_dict`'s estimate."""
         f = cls(params, epoch=float(state["epoch"]))
         tau = float(state["tau"])
-        x, L = np.asarray(state["x"], float), np.asarray(state["L"], float)
-        if x.shape != (STATE_DIM,) or L.shape != (STATE_DIM, STATE_DIM) or not (
-                np.isfinite(x).all() and np.isfinite(L).all() and math.isfinite(tau)):
-            raise ValueError("drift filter state: x must be (4,), L (4, 4), all finite")
+        _finite("tau", tau)
+        x, L = _check_state(state["x"], state["L"])      # the factor L checked as P would be
         for t, step in zip(state["creep"]["times"], state["creep"]["steps"]):
             f.creep.record(float(t), step)
         f.creep.frozen = np.asarray(state["creep"]["frozen"], float).reshape(2)
