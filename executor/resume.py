@@ -161,22 +161,7 @@ class ShiftedClock:
         block = self._inst.write(chunk)
         return replace(block, t=np.asarray(block.t) + self.shift)
 
-    def full_scan(self, *args, **kwargs):
-        return self._inst.full_scan(*args, **kwargs)
-
-    def scan_line(self, *args, **kwargs):
-        return self._inst.scan_line(*args, **kwargs)
-
-    def signals(self):
-        return self._inst.signals()
-
-    def position(self):
-        return self._inst.position()
-
-    def park(self) -> None:
-        self._inst.park()
-
-    def __getattr__(self, name):
+    def __getattr__(self, name):          # the rest of the Instrument protocol, unchanged
         return getattr(self._inst, name)
 
 
