@@ -73,10 +73,10 @@ class ExecOptions:
     drift_q : float
         Process noise of the drift filter: random walk of the drift velocity, nm²/s³.
     drift_q_offset : float
-        White noise on the drift offset, nm²/s: the world's random walk squared plus what
-        the creep model misses (1 nm²/s measured best on the bundled example's particle
-        slots, kalman strategy, seeds 1 2 3 4 7: RMS slot error 13.5-25.9 nm, against
-        21.2-26.9 nm at 0.01).
+        White noise on the drift offset, nm²/s: the world's random walk squared (0.01 for
+        the examples' 0.1 nm/√s) plus what the creep model misses. At 1, a drift reference
+        shoved 51 nm by a rod passed the gate in the bowtie dry-run (seed 7); the effect
+        of 0.01 and 1 on every scene family is in ``bench/RESULTS.md``.
     max_corrections : int
         Extra pushes allowed to bring an object that missed its slot back in.
     max_failures : int
