@@ -118,8 +118,10 @@ class ExecOptions:
     def __post_init__(self) -> None:
         object.__setattr__(self, "strategy", Strategy(self.strategy))
         for name in ("pixel_size", "r_max", "max_drift_rate", "r_max_floor", "line_factor", "reference_every",
-                     "lost_radius", "force_limit", "replan_after"):
+                     "lost_radius", "force_limit", "replan_after", "scan_spacing", "push_speed"):
             v = getattr(self, name)
+            if v is None and name in ("scan_spacing", "push_speed"):      # None: the default rule
+                continue
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"{name} must be positive and finite, got {v!r}")
         for name in ("drift_q", "drift_q_offset"):
@@ -128,7 +130,3 @@ class ExecOptions:
                 raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
         if self.max_corrections < 0 or self.chunk < 16 or self.max_failures < 1:
             raise ValueError("max_corrections must be >= 0, max_failures >= 1 and chunk >= 16")
-        if self.scan_spacing is not None and not (math.isfinite(self.scan_spacing) and self.scan_spacing > 0):
-            raise ValueError(f"scan_spacing must be positive, got {self.scan_spacing!r}")
-        if self.push_speed is not None and not (math.isfinite(self.push_speed) and self.push_speed > 0):
-            raise ValueError(f"push_speed must be positive, got {self.push_speed!r}")

@@ -327,9 +327,21 @@ LogFile = Annotated[Optional[Path], typer.Option("--log", help="Write the run lo
 Live = Annotated[bool, typer.Option("--live", help="Stream the run live over Foxglove's WebSocket "
                                     "protocol on 127.0.0.1 (open it in Foxglove).")]
 LivePort = Annotated[int, typer.Option("--live-port", help="Port of the --live stream.")]
+StrategyName = Annotated[str, typer.Option("--strategy", help="open-loop, local-scan, kalman, full or anchor.")]
+ReportFile = Annotated[Optional[Path], typer.Option("--report", help="Write the report (JSON) here.")]
 Resume = Annotated[Optional[Path], typer.Option("--resume", help="Go on with the stopped run of this log from "
                                                               "its last checkpoint (writes LOG-resumed.mcap "
                                                               "unless --log says otherwise).")]
+
+
+def _check_run_options(strategy: str, report: Path | None) -> None:
+    """The options dry-run and run share: a known strategy, a report that is JSON."""
+    from nanoasm.executor.strategy import STRATEGIES
+
+    if strategy not in STRATEGIES:
+        raise InputError(None, "--strategy", f"unknown strategy {strategy!r}; one of {', '.join(STRATEGIES)}")
+    if report is not None and report.suffix.lower() != ".json":
+        raise InputError(str(report), None, "report must end in .json")
 
 
 @contextmanager
@@ -361,8 +373,8 @@ def dry_run_cmd(
                                                           "the bundled bowtie).")] = None,
     seed: Annotated[Optional[int], typer.Option(help="Seed of the simulated world (default: the "
                                                      "scene's).")] = None,
-    strategy: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full or anchor.")] = "full",
-    report: Annotated[Optional[Path], typer.Option(help="Write the report (JSON) here.")] = None,
+    strategy: StrategyName = "full",
+    report: ReportFile = None,
     planner: Annotated[str, typer.Option(help="OMPL planner for detours.")] = "rrtconnect",
     time_budget: Annotated[float, typer.Option(help="Seconds OMPL may spend on one path.")] = 1.0,
     log: LogFile = None,
@@ -375,10 +387,11 @@ def dry_run_cmd(
     from nanoasm.dryrun import dry_run
     from nanoasm.examples import path as example
     from nanoasm.executor.resume import load_sim_state, resume_point, resumed_log_path, sim_state_path
-    from nanoasm.executor.strategy import STRATEGIES, ExecOptions
+    from nanoasm.executor.strategy import ExecOptions
     from nanoasm.planner.options import PLANNERS, PlanOptions
     from nanoasm.world.scene import load_scene
 
+    _check_run_options(strategy, report)
     if resume is not None:
         if scene_file is not None or layout_file is not None:
             raise InputError(None, "--resume", "takes the scene and the layout from the log; give neither")
@@ -409,16 +422,12 @@ def dry_run_cmd(
         raise InputError(None, "SCENE LAYOUT", "give both a scene and a layout, or neither for the example")
     scene_file = scene_file or example("bowtie_scene.toml")
     layout_file = layout_file or example("bowtie.toml")
-    if strategy not in STRATEGIES:
-        raise InputError(None, "--strategy", f"unknown strategy {strategy!r}; one of {', '.join(STRATEGIES)}")
     if planner not in PLANNERS:
         raise InputError(None, "--planner", f"unknown planner {planner!r}; one of {', '.join(PLANNERS)}")
     if not (_finite(time_budget) and time_budget > 0):
         raise InputError(None, "--time-budget", f"must be positive, got {time_budget:g}")
     if seed is not None and seed < 0:
         raise InputError(None, "--seed", f"must not be negative, got {seed}")
-    if report is not None and report.suffix.lower() != ".json":
-        raise InputError(str(report), None, "report must end in .json")
     scene = load_scene(scene_file)
     layout = load_layout(layout_file)
     options = ExecOptions(strategy=strategy)
@@ -444,8 +453,8 @@ def run_cmd(
                                                           "not with --resume.")] = None,
     instrument: Annotated[Optional[Path], typer.Option(help="Instrument file (nanoasm.instrument/1); "
                                                            "required.")] = None,
-    strategy: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full or anchor.")] = "full",
-    report: Annotated[Optional[Path], typer.Option(help="Write the report (JSON) here.")] = None,
+    strategy: StrategyName = "full",
+    report: ReportFile = None,
     log: LogFile = None,
     live: Live = False,
     live_port: LivePort = 8765,
@@ -459,14 +468,11 @@ def run_cmd(
     from nanoasm.executor.nidaq import NiDaqInstrument
     from nanoasm.executor.report import InstrumentTime, Report, WallTime
     from nanoasm.executor.resume import ShiftedClock, clock_shift, resume_point, resumed_log_path
-    from nanoasm.executor.strategy import STRATEGIES, ExecOptions
+    from nanoasm.executor.strategy import ExecOptions
 
     if instrument is None:
         raise InputError(None, "--instrument", "is required: the instrument file (nanoasm.instrument/1)")
-    if strategy not in STRATEGIES:
-        raise InputError(None, "--strategy", f"unknown strategy {strategy!r}; one of {', '.join(STRATEGIES)}")
-    if report is not None and report.suffix.lower() != ".json":
-        raise InputError(str(report), None, "report must end in .json")
+    _check_run_options(strategy, report)
     point = None
     if resume is not None:
         if layout_file is not None:

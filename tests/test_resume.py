@@ -158,7 +158,8 @@ def test_resume_errors_on_the_command_line_are_one_line(tmp_path):
                        (["dry-run", str(example("bowtie_scene.toml")), str(example("bowtie.toml")),
                          "--resume", "x.mcap"], "give neither"),
                        (["run", "--instrument", str(example("instrument_ni.toml")), "--resume", "nope.mcap"],
-                        "no such run log")):
+                        "no such run log"),
+                       (["dry-run", "--resume", "x.mcap", "--report", "r.txt"], "report must end in .json")):
         if "give neither" in text:
             (tmp_path / "x.mcap").write_bytes(b"")
         done = subprocess.run([sys.executable, "-m", "nanoasm.cli", *args], cwd=tmp_path, capture_output=True,
