@@ -236,13 +236,21 @@ class DriftFilter:
             creep amplitude's uncertainty (``creep.amplitude_std``).
         """
         c = self.creep
-        key = (float(t), self._tau, self._x.tobytes(), self._L.tobytes(), len(c), c.frozen.tobytes(),
-               c._times[-1] if len(c) else None)
-        if self._offset_cache is None or self._offset_cache[0] != key:
+        # the executor asks for the same few times over and over (a scan pattern's first
+        # line and each of its lines): answers are kept per time while the state stands
+        state = (self._tau, self._x.tobytes(), self._L.tobytes(), len(c), c.frozen.tobytes(),
+                 c._times[-1] if len(c) else None)
+        if self._offset_cache is None or self._offset_cache[0] != state:
+            self._offset_cache = (state, {})
+        known = self._offset_cache[1]
+        t = float(t)
+        if t not in known:
+            if len(known) >= 16:
+                known.clear()
             tau, _, x, L, _ = self._propagate(t)
-            # the executor asks for one time many times over
-            self._offset_cache = (key, x[:2] + c.offset(tau), _gram(np.hstack([L[:2], c.cov_sqrt(tau)])))
-        return OffsetEstimate(self._offset_cache[1].copy(), self._offset_cache[2].copy())
+            known[t] = (x[:2] + c.offset(tau), _gram(np.hstack([L[:2], c.cov_sqrt(tau)])))
+        off, cov = known[t]
+        return OffsetEstimate(off.copy(), cov.copy())
 
     def r_max(self, t: float, k: float = 3.0) -> float:
         """Largest expected drift error radius (nm) at ``t``: ``k √λ_max`` of the offset
