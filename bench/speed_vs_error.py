@@ -6,7 +6,7 @@ Dry-runs (``nanoasm.sweep``) of the scene families of ``nanoasm.world.families``
 - every strategy at the default knobs, drift 0.3 nm/s;
 - the ``full`` strategy with one knob at a time moved off its default (scan-line length
   factor, reference-scan interval, push speed, rod push step, the drift filter's two
-  process noises, the replanning threshold, the planner's time budget), to the
+  process noises, the replanning threshold, the planner's budget), to the
   multiples of its default in ``FACTORS``, and the samples per scan line
   (``scan_spacing``, 0.5 and 2 nm between samples);
 - every strategy at drift 0.05 and 1 nm/s.
@@ -48,7 +48,7 @@ FACTORS = {
     "drift_q": (0.01, 100.0),           # Kalman process noise on the drift velocity, nm²/s³
     "drift_q_offset": (0.1, 10.0),      # Kalman process noise on the offset, nm²/s
     "replan_after": (0.5, 4.0),         # nm off course before replanning
-    "time_budget": (0.2, 5.0),          # s of OMPL per path
+    "budget": (0.2, 5.0),          # planning work per path (units of ompl_setup)
 }
 KNOBS = {k: tuple(float(f"{f * getattr(ExecOptions() if k in sw.EXEC_KNOBS else PlanOptions(), k):.6g}")
                   for f in fs) for k, fs in FACTORS.items()}

@@ -256,7 +256,7 @@ def plan_cmd(
     planner: Annotated[str, typer.Option(help="OMPL planner for detours: rrtconnect, rrt, rrtstar, "
                                               "informedrrtstar, bitstar, prm, prmstar, fmt, kpiece, "
                                               "bkpiece, lbkpiece.")] = "rrtconnect",
-    time_budget: Annotated[float, typer.Option(help="Seconds OMPL may spend on one path.")] = 1.0,
+    budget: Annotated[float, typer.Option(help="Planning effort per path, in work (about 1 s a unit here; a plan does not depend on the machine's load).")] = 1.0,
     tip_radius: Annotated[float, typer.Option(help="Tip radius, nm.")] = 10.0,
     margin: Annotated[float, typer.Option(help="Clearance beyond footprints and tip, nm.")] = 20.0,
     seed: Annotated[int, typer.Option(help="Seed of the planners' sampling.")] = 0,
@@ -273,7 +273,7 @@ def plan_cmd(
         raise InputError(None, "--env/--scan", "give exactly one of --env ENV.json or --scan SCAN")
     if planner not in PLANNERS:
         raise InputError(None, "--planner", f"unknown planner {planner!r}; one of {', '.join(PLANNERS)}")
-    for option, value in (("--time-budget", time_budget), ("--tip-radius", tip_radius)):
+    for option, value in (("--budget", budget), ("--tip-radius", tip_radius)):
         if not (_finite(value) and value > 0):
             raise InputError(None, option, f"must be positive, got {value:g}")
     if not (_finite(margin) and margin >= 0):
@@ -289,7 +289,7 @@ def plan_cmd(
 
         env = identify(read_height_image(scan, pixel_size=pixel_size), tip_radius=tip_radius)
     options = PlanOptions(tip_radius=tip_radius, margin=margin, planner=planner,
-                          time_budget=time_budget, seed=seed)
+                          budget=budget, seed=seed)
     plan, stats = _with_progress("planning", lambda progress: plan_assembly(layout, env, options, progress))
     plan.save(output)
     print(f"{output}: written: {len(plan.assignment)} of {len(layout.targets)} slot(s) assigned, "
@@ -376,7 +376,7 @@ def dry_run_cmd(
     strategy: StrategyName = "full",
     report: ReportFile = None,
     planner: Annotated[str, typer.Option(help="OMPL planner for detours.")] = "rrtconnect",
-    time_budget: Annotated[float, typer.Option(help="Seconds OMPL may spend on one path.")] = 1.0,
+    budget: Annotated[float, typer.Option(help="Planning effort per path, in work (about 1 s a unit here; a plan does not depend on the machine's load).")] = 1.0,
     log: LogFile = None,
     live: Live = False,
     live_port: LivePort = 8765,
@@ -406,7 +406,7 @@ def dry_run_cmd(
         seed = int(meta["seed"]) if meta.get("seed", "None") not in ("None", "") else None
         log = log or resumed_log_path(resume)
         scene_name, layout_name = meta.get("scene"), meta.get("layout")
-        options, plan_options = ExecOptions(strategy=strategy), PlanOptions(planner=planner, time_budget=time_budget,
+        options, plan_options = ExecOptions(strategy=strategy), PlanOptions(planner=planner, budget=budget,
                                                                              seed=seed or 0)
         meta = {**meta, "resumed_from": str(resume)}
         with _run_logs(log, live, live_port, point.layout, meta, truth=True) as logs:
@@ -424,14 +424,14 @@ def dry_run_cmd(
     layout_file = layout_file or example("bowtie.toml")
     if planner not in PLANNERS:
         raise InputError(None, "--planner", f"unknown planner {planner!r}; one of {', '.join(PLANNERS)}")
-    if not (_finite(time_budget) and time_budget > 0):
-        raise InputError(None, "--time-budget", f"must be positive, got {time_budget:g}")
+    if not (_finite(budget) and budget > 0):
+        raise InputError(None, "--budget", f"must be positive, got {budget:g}")
     if seed is not None and seed < 0:
         raise InputError(None, "--seed", f"must not be negative, got {seed}")
     scene = load_scene(scene_file)
     layout = load_layout(layout_file)
     options = ExecOptions(strategy=strategy)
-    plan_options = PlanOptions(planner=planner, time_budget=time_budget, seed=seed or 0)
+    plan_options = PlanOptions(planner=planner, budget=budget, seed=seed or 0)
     meta = {"kind": "dry-run", "strategy": strategy, "seed": seed, "scene": str(scene_file),
             "layout": str(layout_file)}
     with _run_logs(log, live, live_port, layout, meta, truth=True) as logs:

@@ -25,8 +25,11 @@ class PlanOptions:
         object found a little off does not end up under the tip.
     planner : str
         OMPL planner for paths that a straight line cannot take (see ``PLANNERS``).
-    time_budget : float
-        Seconds OMPL may spend on one path.
+    budget : float
+        Planning effort for one path, counted in work, not time, so that a plan does not
+        depend on how busy the machine is: OMPL may run ``ITERATIONS_PER_UNIT`` (4000)
+        iterations a unit, the rod search ``EXPANSIONS_PER_UNIT`` (1500) expansions a
+        unit (:mod:`nanoasm.planner.ompl_setup`); one unit is about a second here.
     rod_limit : float
         Largest aspect ratio σ = L/d pushed as a rigid rod (seed §4.3: 15).
     min_confidence : float
@@ -44,7 +47,7 @@ class PlanOptions:
     margin: float = 20.0
     lead: float = 20.0
     planner: str = "rrtconnect"
-    time_budget: float = 1.0
+    budget: float = 1.0
     rod_limit: float = 15.0
     min_confidence: float = 0.5
     seed: int = 0
@@ -52,7 +55,7 @@ class PlanOptions:
     rod_push_point: float = 0.1
 
     def __post_init__(self) -> None:
-        for name in ("tip_radius", "margin", "lead", "time_budget", "rod_limit", "rod_swing"):
+        for name in ("tip_radius", "margin", "lead", "budget", "rod_limit", "rod_swing"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0) and not (name in ("margin", "lead") and v == 0):
                 raise ValueError(f"{name} must be positive and finite, got {v!r}")

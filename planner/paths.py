@@ -18,25 +18,12 @@ from collections.abc import Callable
 import numpy as np
 import shapely
 
+from . import ompl_setup
 from .freespace import FreeSpace
 from .options import PlanOptions
 
 Point = tuple[float, float]
 Path = list[Point]
-
-_PLANNERS = {
-    "rrtconnect": "RRTConnect", "rrt": "RRT", "rrtstar": "RRTstar",
-    "informedrrtstar": "InformedRRTstar", "bitstar": "BITstar", "prm": "PRM",
-    "prmstar": "PRMstar", "fmt": "FMT", "kpiece": "KPIECE1", "bkpiece": "BKPIECE1",
-    "lbkpiece": "LBKPIECE1",
-}
-#: Planners that build their roadmap in a thread of their own: a cost written in Python
-#: would need the interpreter from that thread while solve() holds it (a deadlock), so
-#: they optimise path length only.
-THREADED = {"prm", "prmstar"}
-#: Planners that keep improving a solution within their budget.
-OPTIMIZING = {"rrtstar", "informedrrtstar", "bitstar", "prmstar", "fmt"}
-
 
 class Mover:
     """Clearance tests for one object of radius ``radius`` moving through ``space``."""
@@ -133,10 +120,9 @@ def fewest_segments(path: Path, segment_free: Callable[[Point, Point], bool]) ->
 
 def ompl_path(mover: Mover, start: Point, goal: Point, options: PlanOptions) -> Path | None:
     """Plan with OMPL from ``start`` to ``goal`` (both of full clearance); None if none found."""
-    from ompl import base as ob, geometric as og, util as ou
+    from ompl import base as ob
 
-    ou.setLogLevel(ou.LogLevel.LOG_NONE)
-    ou.RNG.setSeed(options.seed + 1)
+    ompl_setup.seed(options, 1)
     r = mover.radius
     w, h = mover.space.area
     space = ob.RealVectorStateSpace(2)
@@ -162,33 +148,26 @@ def ompl_path(mover: Mover, start: Point, goal: Point, options: PlanOptions) -> 
         def stateCost(self, s):
             return ob.Cost(1.0 / (max(mover.slack((s[0], s[1])), 0.0) + r))
 
+    def length_and_clearance(si):
+        # an optimising planner weighs clearance against length and uses its whole budget
+        objective = ob.MultiOptimizationObjective(si)
+        objective.addObjective(ob.PathLengthOptimizationObjective(si), 1.0)
+        objective.addObjective(ClearanceCost(si, True), r * r)
+        objective.setCostThreshold(ob.Cost(0.0))
+        return objective
+
     validity = Validity(si)
     si.setStateValidityChecker(validity)
     segments = Segments(si)
     si.setMotionValidator(segments)
     si.setup()
-    ss = og.SimpleSetup(si)
     a, b = space.allocState(), space.allocState()
     a[0], a[1] = start
     b[0], b[1] = goal
-    ss.setStartAndGoalStates(a, b)
-    length = ob.PathLengthOptimizationObjective(si)
-    if options.planner in OPTIMIZING and options.planner not in THREADED:
-        objective = ob.MultiOptimizationObjective(si)
-        objective.addObjective(length, 1.0)
-        clearance_cost = ClearanceCost(si, True)
-        objective.addObjective(clearance_cost, r * r)
-        objective.setCostThreshold(ob.Cost(0.0))
-    else:
-        objective = length
-        objective.setCostThreshold(ob.Cost(1e18))   # stop at the first solution
-    ss.setOptimizationObjective(objective)
-    planner = getattr(og, _PLANNERS[options.planner])(si)
-    ss.setPlanner(planner)
-    status = ss.solve(options.time_budget)
-    if status.getStatus() != ob.PlannerStatus.EXACT_SOLUTION:
+    path = ompl_setup.solve(si, a, b, options, what=f"path of {mover.id!r}", objective=length_and_clearance)
+    if path is None:
         return None
-    states = ss.getSolutionPath().getStates()
+    states = path.getStates()
     return [(float(q[0]), float(q[1])) for q in states]
 
 

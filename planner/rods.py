@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import heapq
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,8 +31,10 @@ import shapely
 from nanoasm.bodies import Body
 from nanoasm.world.pivot import RodPose, pivot_position, rod_step
 
+from . import ompl_setup
 from .assign import axis_error
 from .freespace import FreeSpace
+from .ompl_setup import Budget
 from .options import PlanOptions
 
 Point = tuple[float, float]
@@ -200,9 +201,9 @@ def _rotation_sweep(space: FreeSpace, a: Body, b: Body, clearance: float | None,
     return space.all_free(cores, a.radius, (a.id,), exempt, clearance)
 
 
-#: Search expansions a second of planner budget buys (measured here: about 2000 a second
-#: among the bowtie example's objects).
-EXPANSIONS_PER_SECOND = 1500
+#: Search expansions one unit of planner budget buys (about a second here: some 2000
+#: expansions a second among the bowtie example's objects).
+EXPANSIONS_PER_UNIT = 1500
 #: The legs along an SE(2) path share this many times the direct search's budget.
 LEG_SHARE = 3
 
@@ -220,8 +221,8 @@ class RodController:
         self.clearance: float | None = None     # None: the space's own (full) clearance
         self.exempt: frozenset[int] = frozenset()
         self._library: dict[tuple, tuple[list[Macro], list[Macro]]] = {}
-        self.deadline = math.inf
-        self.allowance = 0          # search expansions left to the present phase
+        #: search expansions left to the present phase
+        self.allowance = Budget(0, math.inf, "rod search")
 
     # -- macros ---------------------------------------------------------------------
     def _macros(self, rod: Body) -> tuple[list[Macro], list[Macro]]:
@@ -279,8 +280,7 @@ class RodController:
         heap = [(h(rod), 0, counter, rod, None, None)]
         closed: set[tuple] = set()
         expansions = 0
-        while (heap and expansions < self.max_expansions and self.allowance > 0
-               and time.perf_counter() < self.deadline):
+        while heap and expansions < self.max_expansions and not self.allowance.exhausted():
             _, g, _, pose, parent, macro = heapq.heappop(heap)
             k = key(pose)
             if k in closed:
@@ -299,7 +299,7 @@ class RodController:
                     pushes[:0] = step
                 return pushes
             expansions += 1
-            self.allowance -= 1
+            self.allowance.spend()
             for m in far:
                 after = _place(pose, m.poses[-1])
                 if key(after) in closed or not self.space.inside(after.geometry(), after.radius):
@@ -349,9 +349,10 @@ class RodController:
 
         The budget is counted in search expansions, so a plan does not depend on the
         machine's speed or load: the direct search may expand
-        ``EXPANSIONS_PER_SECOND × options.time_budget`` nodes (about that many seconds
-        here), the legs along an SE(2) path ``LEG_SHARE`` times that together. A wall-clock
-        deadline of ten times the budget only guards against a pathological case."""
+        ``EXPANSIONS_PER_UNIT × options.budget`` nodes, the legs along an SE(2) path
+        ``LEG_SHARE`` times that together. A wall-clock guard
+        (:class:`~nanoasm.planner.ompl_setup.Budget`) only stops a pathological case,
+        and says so in the log."""
         self.exempt = self.space.lying_on(rod.geometry(), rod.radius)
         near_pos = 0.3 * math.radians(self.options.rod_swing) * rod.length
         near_ang = self.options.rod_swing / 2
@@ -360,13 +361,11 @@ class RodController:
             # a rod that starts closer to its neighbours than the clearance only avoids contact
             self.clearance = 0.0 if cramped else None
             legs = [goal]
-            budget = self.options.time_budget
-            self.allowance = round(EXPANSIONS_PER_SECOND * budget)
-            self.deadline = time.perf_counter() + 10 * budget
+            what = f"zigzag of {rod.id!r}"
+            self.allowance = Budget.of(self.options, EXPANSIONS_PER_UNIT, what)
             first = self._leg(rod, goal, near_pos, near_ang)
             if first is None:
-                self.allowance = round(LEG_SHARE * EXPANSIONS_PER_SECOND * budget)
-                self.deadline = time.perf_counter() + 10 * LEG_SHARE * budget
+                self.allowance = Budget.of(self.options, EXPANSIONS_PER_UNIT, what, share=LEG_SHARE)
                 # the full clearance along the SE(2) path: a rod's end strays ~15 nm per 2°
                 # of its executed angle, and a neighbour it touches hides it from the scans
                 self.clearance = 0.0 if cramped else None
@@ -388,7 +387,7 @@ class RodController:
                     i += step is not None
                 if step is None:
                     # else a new SE(2) path from there (twice at most)
-                    if fresh_paths >= 2 or self.allowance <= 0 or first is not None:
+                    if fresh_paths >= 2 or self.allowance.exhausted() or first is not None:
                         return out, pose, False
                     fresh_paths += 1
                     waypoints = se2_waypoints(self.space, pose, goal, self.options)
@@ -433,10 +432,9 @@ def se2_waypoints(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions)
 
 def _se2_path(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions,
               clearance: float) -> list[Body] | None:
-    from ompl import base as ob, geometric as og, util as ou
+    from ompl import base as ob, geometric as og
 
-    ou.setLogLevel(ou.LogLevel.LOG_NONE)
-    ou.RNG.setSeed(options.seed + 2)
+    ompl_setup.seed(options, 2)
     w, h = space.area
     r = rod.radius
     sp = ob.SE2StateSpace()
@@ -462,21 +460,14 @@ def _se2_path(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions,
     sweeps = Sweeps(si)
     si.setMotionValidator(sweeps)
     si.setup()
-    ss = og.SimpleSetup(si)
     a, b = sp.allocState(), sp.allocState()
     a.setX(rod.at[0]), a.setY(rod.at[1]), a.setYaw(_yaw(rod.angle))
     # a rod's axis is symmetric: aim for the goal angle nearest the current one
     goal_angle = rod.angle + math.remainder(goal.angle - rod.angle, 180.0)
     b.setX(goal.at[0]), b.setY(goal.at[1]), b.setYaw(_yaw(goal_angle))
-    ss.setStartAndGoalStates(a, b)
-    objective = ob.PathLengthOptimizationObjective(si)
-    objective.setCostThreshold(ob.Cost(1e18))
-    ss.setOptimizationObjective(objective)
-    ss.setPlanner(og.RRTConnect(si))
-    status = ss.solve(options.time_budget)
-    if status.getStatus() != ob.PlannerStatus.EXACT_SOLUTION:
+    path = ompl_setup.solve(si, a, b, options, what=f"SE(2) path of {rod.id!r}")
+    if path is None:
         return None
-    path = ss.getSolutionPath()
     # shortcut by vertex removal, a fixed amount of work on the seeded RNG: a simplifier
     # given seconds would make the plan depend on the machine's load
     simplifier = og.PathSimplifier(si)

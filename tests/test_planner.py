@@ -161,7 +161,7 @@ def test_random_scenes(seed, particles, rods, obstacles):
     if rods:
         targets.append(Body("r", "rod", (3000.0, 1200.0), 80.0, 20.0, 700.0))
     layout = layout_of(targets, area=(6000.0, 6000.0))
-    plan, _ = plan_assembly(layout, env, PlanOptions(time_budget=0.3))
+    plan, _ = plan_assembly(layout, env, PlanOptions(budget=0.3))
     # every slot is either assigned or explained, never both
     assigned = [a.target for a in plan.assignment]
     explained = [u.target for u in plan.unfilled]
@@ -225,7 +225,7 @@ def test_every_planner_finds_a_detour_and_returns(tmp_path):
         " (Keepout(wall),), Tolerance())\n"
         "env = Environment((5000.0, 5000.0), (EnvObject('o1', 'particle', (1000.0, 2500.0), 100.0),))\n"
         "for name in sys.argv[1:]:\n"
-        "    plan, _ = plan_assembly(lay, env, PlanOptions(planner=name, time_budget=1.0))\n"
+        "    plan, _ = plan_assembly(lay, env, PlanOptions(planner=name, budget=1.0))\n"
         "    assert not plan.unfilled, name\n"
         "print('ok')\n"
     )

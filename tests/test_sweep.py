@@ -100,11 +100,11 @@ def test_ctrl_c_keeps_the_finished_rows():
 
 def test_grid_varies_one_knob_at_a_time():
     cases = sw.grid(["tiny", "sparse"], [1, 2, 3], ["full", "kalman"], drifts=[0.05, 1.0],
-                    knobs={"line_factor": [0.5, 2.0], "time_budget": [0.2]})
+                    knobs={"line_factor": [0.5, 2.0], "budget": [0.2]})
     assert len(cases) == 2 * 2 * (1 + 3) * 2 * 3
-    assert {c.knob for c in cases} == {"default", "line_factor=0.5", "line_factor=2", "time_budget=0.2"}
-    ex, plan = sw.Case("tiny", 1, "kalman", knobs=(("drift_q", 1e-4), ("time_budget", 0.2))).options()
-    assert (ex.strategy.value, ex.drift_q, plan.time_budget, plan.seed) == ("kalman", 1e-4, 0.2, 1)
+    assert {c.knob for c in cases} == {"default", "line_factor=0.5", "line_factor=2", "budget=0.2"}
+    ex, plan = sw.Case("tiny", 1, "kalman", knobs=(("drift_q", 1e-4), ("budget", 0.2))).options()
+    assert (ex.strategy.value, ex.drift_q, plan.budget, plan.seed) == ("kalman", 1e-4, 0.2, 1)
 
 
 @pytest.mark.parametrize("kwargs, match", [
