@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
-from nanoasm.executor.assembly import Assembly, RunSummary
+from nanoasm.executor.assembly import Assembly
+from nanoasm.executor.summary import RunSummary
 from nanoasm.executor.engine import RunEngine, Subscriber
 from nanoasm.executor.report import InstrumentTime, Report, WallTime
 from nanoasm.executor.resume import SimKeeper

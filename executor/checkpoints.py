@@ -1,0 +1,63 @@
+"""Checkpoints: the whole state of an assembly run as JSON, composed of its components'
+``state_dict()``s, and the run set up again from one (see :mod:`nanoasm.executor.resume`).
+
+What never changes during a run, the identified environment and the first plan, is not
+repeated in a checkpoint: a run log holds them once (``/environment``, the first
+``/plan``), and :func:`restore` takes them as ``env`` and ``first_plan`` beside the state
+(:func:`nanoasm.executor.resume.resume_point` puts them there).
+"""
+
+from __future__ import annotations
+
+import time
+
+from nanoasm.planner import Operation
+
+from .belief import Belief
+from .context import RunContext
+from .course import Course
+from .estimators import estimator_from_state
+from .ledger import RunLedger
+from .references import References
+
+FORMAT = "nanoasm.checkpoint/1"
+
+
+def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str, int], t: float) -> dict:
+    """What :meth:`Assembly.resume` needs to go on after ``done`` operations of the
+    current plan, ``remaining`` to run (JSON types, lossless), and the latest drift
+    estimate (``drift``). The ledger's figures are at the top level (``counts``,
+    ``times``, ...), where a reader of a log finds them."""
+    ctx, rp = asm.ctx, asm.replanner
+    return {
+        "format": FORMAT, "t": t, "saved_at": time.time(), "strategy": asm.strategy.value,
+        "plan": None if rp.plan is None else rp.plan.to_dict(),
+        "base": None if rp.base is None else rp.base.to_dict(),
+        "remaining": [o.to_dict() for o in remaining], "done": done, "corrections": dict(corrections),
+        "belief": ctx.belief.state_dict(), "estimator": ctx.drift.state_dict(),
+        "references": ctx.refs.state_dict(), "course": asm.course.state_dict(),
+        "moving": sorted(ctx.moving), **ctx.ledger.state_dict(),
+        "drift": ctx.ledger.drift[-1] if ctx.ledger.drift else None}
+
+
+def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]]:
+    """Set ``asm`` up from :func:`checkpoint`'s state; returns (remaining, done, corrections)."""
+    from nanoasm.planner.plan import plan_from_dict
+    from nanoasm.world.environment import environment_from_dict
+
+    if st.get("format") != FORMAT:
+        raise ValueError(f"not a nanoasm checkpoint (format {st.get('format')!r})")
+    if st["strategy"] != asm.strategy.value:
+        raise ValueError(f"the run used strategy {st['strategy']!r}, not {asm.strategy.value!r}")
+    asm.env = environment_from_dict(st["env"], "checkpoint")
+    asm.first_plan = plan_from_dict(st["first_plan"], "checkpoint")
+    rp = asm.replanner
+    rp.plan = plan_from_dict(st["plan"], "checkpoint") if st["plan"] else None
+    rp.base = environment_from_dict(st["base"], "checkpoint") if st["base"] else None
+    carrier = st["plan"] or st["first_plan"]       # a plan document around the operations
+    remaining = list(plan_from_dict({**carrier, "operations": st["remaining"]}, "checkpoint").operations)
+    asm.ctx = RunContext(config, asm.options, estimator_from_state(st["estimator"], asm.options),
+                         Belief.from_state(st["belief"]), References.from_state(st["references"]),
+                         RunLedger.from_state(st), moving=set(st["moving"]))
+    asm.course = Course.from_state(st["course"])
+    return remaining, int(st["done"]), {k: int(v) for k, v in st["corrections"].items()}

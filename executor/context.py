@@ -1,0 +1,92 @@
+"""The explicit state the steps of a run work on: the instrument's configuration, the run's
+options, and its components (drift estimator, belief, full-scan references, ledger).
+
+Steps (:mod:`~nanoasm.executor.scan_steps`, :mod:`~nanoasm.executor.motion_steps`,
+:mod:`~nanoasm.executor.drift_steps`) are free generator functions over a
+:class:`RunContext`, so each can be run against a fake instrument without a whole run.
+Frames: the belief is in the layout frame; a layout point ``p`` lies at
+``p + offset(t)`` in the scanner frame.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from nanoasm.bodies import Body
+
+from .belief import Belief
+from .estimators import DriftEstimator
+from .ledger import RunLedger
+from .references import References
+from .scan_lines import ScanOptions
+from .strategy import ExecOptions
+
+
+@dataclass
+class RunContext:
+    """State shared by the steps of one run (see the module docstring).
+
+    ``moving``: objects the current plan still moves (never drift references).
+    ``scan_ref``: time of the running scan pattern's first line (its lines are
+    compensated to that time), None between patterns."""
+
+    config: Any                         # the instrument's InstrumentConfig
+    options: ExecOptions
+    drift: DriftEstimator
+    belief: Belief
+    refs: References
+    ledger: RunLedger = field(default_factory=RunLedger)
+    scan_opts: ScanOptions | None = None
+    moving: set[str] = field(default_factory=set)
+    scan_ref: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.scan_opts is None:
+            self.scan_opts = ScanOptions(spacing=self.options.scan_spacing)
+
+    def offset(self, t: float) -> np.ndarray:
+        """Scanner position of the layout's origin at ``t`` (the drift estimate's)."""
+        return self.drift.offset(t)
+
+    def position(self, obj_id: str) -> np.ndarray:
+        """Believed layout position; an object seen only in the first full scan is moved by
+        the drift during that scan (row by row), as far as the estimate knows it."""
+        at = np.asarray(self.belief[obj_id].at, float)
+        if obj_id in self.refs.raw:
+            at = self.drift.unskew(at, self.belief.seen[obj_id].t - self.drift.epoch)
+        return at
+
+    def r_max(self, t: float, obj_id: str | None = None) -> float:
+        """Largest expected error of a believed position at ``t``, nm, scaled by the
+        options' ``line_factor`` (at least ``r_max_floor``)."""
+        o = self.options
+        seen = self.belief.seen.get(obj_id) if obj_id is not None else None
+        skew = seen.t - self.drift.epoch if seen is not None and obj_id in self.refs.raw else None
+        return o.line_factor * max(self.drift.radius(t, seen, skew, o), o.r_max_floor)
+
+    def to_layout(self, scanner: Body, t: float) -> Body:
+        """A measured pose (scanner frame) in the layout frame, by the present estimate."""
+        at = np.asarray(scanner.at) - self.offset(t)
+        return replace(scanner, at=(float(at[0]), float(at[1])))
+
+    def observe(self, obj_id: str, at, t: float, cov, *, angle=None) -> None:
+        """Record a measured pose (layout frame); its uncertainty includes the drift
+        estimate's at ``t``, through which it was put into the layout frame."""
+        self.belief.observe(obj_id, at, t, self.drift.observation_cov(t, cov), angle=angle)
+        self.refs.raw.discard(obj_id)
+
+    def log_drift(self, t: float) -> None:
+        off = self.offset(t)
+        self.ledger.drift.append((t, float(off[0]), float(off[1])))
+
+    def someone_else(self, obj_id: str, at: np.ndarray, expected: np.ndarray | None = None) -> bool:
+        """Whether a scan hit another known object rather than ``obj_id`` (expected at
+        ``expected``, by default where it is believed to be)."""
+        mine = math.dist(at, self.position(obj_id) if expected is None else expected)
+        d = self.belief[obj_id].diameter
+        return any(math.dist(at, self.position(oid)) < min(mine, d)
+                   for oid in self.belief.objects if oid != obj_id and oid not in self.belief.lost)

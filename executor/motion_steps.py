@@ -1,0 +1,136 @@
+"""Moves as plan stubs: lifted travel, lifting the tip, and a push streamed to the DAC with
+drift folded in and its signals watched.
+
+Free generator functions over a :class:`~nanoasm.executor.context.RunContext`; every move
+is within the instrument's slew limits (:func:`nanoasm.world.instrument.ramp` and
+:func:`nanoasm.executor.dac.plan_dac`) and is told to the drift estimator, whose creep
+model follows it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from nanoasm.planner import Operation
+from nanoasm.world.cantilever import Cantilever
+
+from .context import RunContext
+from .dac import plan_dac
+from .engine import Msg
+from .monitor import PushMonitor
+from .trajectory import PUSH, TRAVEL, operation
+
+#: A scan line starting farther than this (nm) from the tip is preceded by a travel.
+APPROACH = 300.0
+#: A preload raised for an object the tip slipped over stays within this share of the Z range.
+PRELOAD_CAP = 0.45
+#: Every this many samples of a streamed chunk go to the run log.
+DAC_LOG_EVERY = 50
+
+
+def travel_to(ctx: RunContext, xy):
+    """Lifted travel to ``xy`` (scanner frame nm) within the slew limit."""
+    from nanoasm.world.instrument import ramp
+
+    cfg = ctx.config
+    here = yield Msg("position")
+    there = cfg.nm_to_codes(np.array([xy[0], xy[1], cfg.lift]))
+    path = ramp(here, there, cfg)
+    if len(path):
+        block = yield Msg("write", (path,))
+        ctx.ledger.times["travel"] += len(block) / cfg.sample_rate
+        _moved(ctx, here, there, float(block.t[-1]))
+
+
+def approach(ctx: RunContext, xy):
+    """Travel (lifted, recorded for creep) to a scan line that starts far from the tip,
+    so the scan itself is a small move."""
+    here = yield Msg("position")
+    there = ctx.config.codes_to_nm(np.asarray(here))[:2]
+    if math.dist(there, xy) > APPROACH:
+        lo, hi = ctx.config.lower[:2], ctx.config.upper[:2]
+        yield from travel_to(ctx, np.clip(np.asarray(xy, float), lo, hi))
+
+
+def lift(ctx: RunContext):
+    """Stop a push: lift the tip straight up within the slew limit."""
+    from nanoasm.world.instrument import ramp
+
+    cfg = ctx.config
+    here = yield Msg("position")
+    up = np.asarray(here).copy()
+    up[2] = cfg.nm_to_codes(np.array([0.0, 0.0, cfg.lift]))[2]
+    path = ramp(here, up, cfg)
+    if len(path):
+        block = yield Msg("write", (path,))
+        ctx.ledger.times["travel"] += len(block) / cfg.sample_rate
+
+
+def _moved(ctx: RunContext, start_codes, end_codes, t: float) -> None:
+    """Tell the drift estimator about a scanner move from ``start_codes`` finished at ``t``."""
+    cfg = ctx.config
+    ctx.drift.moved_to(cfg.codes_to_nm(np.asarray(end_codes))[:2], t,
+                       start=cfg.codes_to_nm(np.asarray(start_codes))[:2])
+
+
+def dac_doc(ctx: RunContext, codes, kind, block, every: int = DAC_LOG_EVERY) -> dict:
+    """A streamed DAC chunk, every ``every``-th sample: scanner nm, kind, signals."""
+    nm = ctx.config.codes_to_nm(np.asarray(codes)[::every])
+    return {"t": block.t[::every].tolist(), "x": nm[:, 0].tolist(), "y": nm[:, 1].tolist(),
+            "z": nm[:, 2].tolist(), "kind": np.asarray(kind)[::every].tolist(),
+            "s_n": block.s_n[::every].tolist(), "s_l": block.s_l[::every].tolist(),
+            "n": int(len(codes)), "every": every}
+
+
+def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_factor: float = 1.0):
+    """Travel to the push, lower, push, lift; watching the signals. Returns the verdict.
+
+    An object the tip slipped over before is pushed with ``preload_factor`` times the
+    preload (seed eq. 4.7: a larger normal force keeps the tip down), up to
+    :data:`PRELOAD_CAP` of the Z range."""
+    cfg = ctx.config
+    if preload_factor != 1.0:
+        cfg = replace(cfg, preload=min(cfg.preload * preload_factor, PRELOAD_CAP * cfg.z_range))
+    current = yield Msg("position")
+    t0 = yield Msg("clock")
+    moves = operation(op.tip_path, push_speed=ctx.options.push_speed)
+    dac = plan_dac(moves, cfg, current, t0=t0, drift=ctx.drift.predicted(t0), lever=lever)
+    pending = ctx.drift.pending_travel(dac, current, ctx.config)
+    if pending:     # the travel to the push creeps while the push runs: follow it
+        dac = plan_dac(moves, cfg, current, t0=t0, drift=ctx.drift.predicted(t0, pending), lever=lever)
+    monitor = PushMonitor(cfg.preload, lever=lever, force_limit=ctx.options.force_limit)
+    verdict = None
+    n_push = n_other = 0
+    ends = {TRAVEL: None, PUSH: None}
+    for chunk in dac.chunks(ctx.options.chunk):
+        block = yield Msg("write", (chunk.codes,))
+        yield Msg("emit", ("dac", dac_doc(ctx, chunk.codes, chunk.kind, block)))
+        # creep follows the travel and the push as two moves, each ended where XY stops
+        for kind in ends:
+            idx = np.flatnonzero(chunk.kind == kind)
+            if idx.size:
+                ends[kind] = (chunk.codes[idx[-1]], float(block.t[idx[-1]]))
+        lifted = chunk.kind == TRAVEL                              # travel: free air
+        if lifted.any() and not monitor.in_contact:
+            monitor.set_baseline(block.s_n[lifted], block.s_l[lifted])
+        pushing = chunk.kind == PUSH
+        n_push += int(pushing.sum())
+        n_other += int((~pushing).sum())
+        if pushing.any():
+            v = monitor.check(block.s_n[pushing], block.s_l[pushing])
+            if v.failed:
+                verdict = v
+                break
+    for end in ends.values():
+        if end is not None:
+            _moved(ctx, current, *end)
+    if verdict is None:
+        verdict = monitor.finish()
+    if verdict.failed:
+        yield from lift(ctx)
+    ctx.ledger.times["push"] += n_push / cfg.sample_rate
+    ctx.ledger.times["travel"] += n_other / cfg.sample_rate
+    return verdict

@@ -1,0 +1,97 @@
+"""One push with its scans, as a plan stub: a drift reference, a local scan before (the push
+re-aimed at where the object really is), the push streamed and watched, a local scan
+after, and the verdict."""
+
+from __future__ import annotations
+
+import math
+
+from nanoasm.bodies import Body
+from nanoasm.planner import Operation, PlanOptions
+from nanoasm.world.cantilever import Cantilever
+
+from .context import RunContext
+from .course import Course
+from .drift_steps import emit_drift, fold, take_reference
+from .engine import Msg
+from .monitor import Verdict
+from .motion_steps import stream_push
+from .reaim import particle_push, rod_push
+from .scan_steps import locate, scan_after
+
+#: A push planned longer than this (nm) that moved its object less than
+#: :data:`SLIP_SHARE` of the way left it where it was: the tip slipped over it.
+SLIP_MIN_PUSH = 20.0
+SLIP_SHARE = 0.25
+
+
+def _lost(ctx: RunContext, obj_id: str) -> None:
+    ctx.belief.lose(obj_id)
+    ctx.ledger.fail(obj_id, "lost")
+
+
+def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan_options: PlanOptions):
+    """One push with its scans; returns "ok", "failed" or "lost"."""
+    obj_id = op.object
+    scans = ctx.options.strategy.scans
+    start = ctx.belief[obj_id]
+    if scans:
+        yield from take_reference(ctx, start.at, obj_id)
+        found = yield from locate(ctx, obj_id)
+        if found is None:
+            _lost(ctx, obj_id)
+            yield Msg("event", (f"{obj_id} lost: not found within {ctx.options.lost_radius:.0f} nm",),
+                      {"level": "error"})
+            return "lost"
+        measured, cov, t, _ = found
+        if not fold(ctx, obj_id, measured.at, cov, t):
+            yield Msg("event", (f"{obj_id} moved on its own",), {"level": "warn"})
+        yield from emit_drift(ctx, t)
+        measured = ctx.to_layout(measured, t)       # with the drift as now estimated
+        ctx.observe(obj_id, measured.at, t, cov, angle=measured.angle)
+        start = ctx.belief[obj_id]
+        if start.kind == "rod":
+            at, angle = course.starts.get(op.id, (start.at, start.angle))
+            expected = Body(obj_id, "rod", at, start.diameter, angle, start.length)
+            op = rod_push(op, expected, start)
+        else:
+            op = particle_push(op, start.at, start.radius, plan_options.tip_radius, plan_options.lead)
+            if op is None:
+                return "ok"
+    verdict = yield from stream_push(ctx, op, lever, course.preload.get(obj_id, 1.0))
+    ledger = ctx.ledger
+    ledger.counts["pushes"] += 1
+    ledger.pushed_once(obj_id)
+    ctx.belief.expect(obj_id, op.expect.at, op.expect.angle)
+    if verdict.failed:
+        ledger.counts["failed_pushes"] += 1
+        ledger.fail(obj_id, verdict.status)
+        yield Msg("event", (f"push of {obj_id} {verdict.status} (peak force {verdict.peak_force:.0f} nN)",),
+                  {"level": "warn"})
+    if scans:
+        after = yield from scan_after(ctx, op, start)
+        if after is None:
+            located = yield from locate(ctx, obj_id)
+            if located is None:
+                _lost(ctx, obj_id)
+                return "lost"
+            scanner, cov, t = located[:3]
+            after = (ctx.to_layout(scanner, t), cov, t)
+        body, cov, t = after
+        ctx.observe(obj_id, body.at, t, cov, angle=body.angle)
+        planned = math.dist(start.at, op.expect.at)
+        if not verdict.failed and planned > SLIP_MIN_PUSH and math.dist(start.at, body.at) < SLIP_SHARE * planned:
+            # the signals missed it, the scans did not: the tip went over the object
+            verdict = Verdict("slipped", None, verdict.peak_force)
+            ledger.counts["failed_pushes"] += 1
+            ledger.fail(obj_id, "slipped")
+            yield Msg("event", (f"push of {obj_id} left it where it was: slipped over",), {"level": "warn"})
+        if verdict.status == "slipped":
+            course.slipped(obj_id)
+    t_end = yield Msg("clock")
+    yield Msg("emit", ("push", {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,
+                                "offset": [float(v) for v in ctx.offset(t_end)],
+                                "before": [float(v) for v in start.at],
+                                "peak_force": verdict.peak_force,
+                                "belief": ctx.belief[obj_id].to_dict()}))
+    return "failed" if verdict.failed else "ok"
