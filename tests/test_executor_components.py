@@ -1,0 +1,272 @@
+"""The executor's components, each alone, without a dry-run: the drift estimators, the
+ledger, the full scan's references, the course, and the scan and motion steps driven by
+a fake instrument."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, strategies as st
+
+from nanoasm.bodies import Body
+from nanoasm.executor.belief import Belief
+from nanoasm.executor.context import RunContext
+from nanoasm.executor.course import Course, course_clear, starts
+from nanoasm.executor.engine import Msg
+from nanoasm.executor.estimators import (
+    Anchor,
+    Kalman,
+    NoDrift,
+    estimator_for,
+    estimator_from_state,
+)
+from nanoasm.executor.ledger import RunLedger
+from nanoasm.executor.motion_steps import travel_to
+from nanoasm.executor.references import References
+from nanoasm.executor.scan_steps import run_pattern, scan_line
+from nanoasm.executor.strategy import ExecOptions, Strategy
+from nanoasm.planner import Operation
+from nanoasm.planner.plan import Plan
+from nanoasm.world.environment import EnvObject, Environment
+from nanoasm.world.instrument import InstrumentConfig, SignalBlock
+
+OPTS = ExecOptions()
+
+
+def _env(*objs) -> Environment:
+    return Environment((4000.0, 4000.0), tuple(objs), ())
+
+
+def _particle(oid, x, y, d=90.0) -> EnvObject:
+    return EnvObject(oid, "particle", (x, y), d)
+
+
+# -- drift estimators ---------------------------------------------------------------------
+@pytest.mark.parametrize("strategy,kind", [("open-loop", NoDrift), ("local-scan", NoDrift),
+                                           ("anchor", Anchor), ("kalman", Kalman), ("full", Kalman)])
+def test_each_strategy_picks_its_estimator(strategy, kind):
+    est = estimator_for(Strategy(strategy), (100.0, 200.0), 5.0, OPTS)
+    assert type(est) is kind
+    assert est.offset(5.0) == pytest.approx([100.0, 200.0])
+
+
+def test_no_drift_grows_its_error_radius_with_the_time_since_a_sighting():
+    est = NoDrift((0.0, 0.0), 0.0)
+    belief = Belief(_env(_particle("a", 1000, 1000)), 0.0)
+    seen = belief.seen["a"]
+    r0 = est.radius(0.0, seen, None, OPTS)
+    r1 = est.radius(100.0, seen, None, OPTS)
+    assert r0 == pytest.approx(OPTS.r_max)
+    assert r1 - r0 == pytest.approx(100.0 * OPTS.max_drift_rate)
+    assert est.offset(1e6) == pytest.approx([0.0, 0.0])          # nothing is estimated
+    assert est.measure("a", (5.0, 5.0), np.eye(2), 1.0, References(), [], set()) is None
+
+
+def test_the_anchor_gives_the_offset_where_it_is_found_less_where_it_was():
+    belief = Belief(_env(_particle("mover", 500, 500), _particle("near", 2100, 2000),
+                         _particle("far", 3500, 3500)), 0.0)
+    op = Operation(0, "mover", None, ((400.0, 500.0), (900.0, 500.0)),
+                   Body("mover", "particle", (1000.0, 500.0), 90.0))
+    est = Anchor((10.0, 20.0), 0.0)
+    est.after_plan(Plan("x", (), (op,), ()), belief, (4000.0, 4000.0))
+    assert est.anchor[0] == "near"                               # unmoved, nearest the centre
+    assert est.reference_target(0.0, (0, 0), "mover", belief, References(), [], set(), OPTS) == "near"
+    assert est.measure("near", (2100.0 + 10 + 7, 2000.0 + 20 - 3), np.eye(2), 9.0, References(), [], set())
+    assert est.offset(9.0) == pytest.approx([10.0 + 7, 20.0 - 3])
+    assert est.measure("far", (0.0, 0.0), np.eye(2), 9.0, References(), [], set()) is None
+    back = estimator_from_state(est.state_dict(), OPTS)
+    assert type(back) is Anchor and back.anchor == est.anchor
+    assert back.offset(9.0) == pytest.approx(est.offset(9.0))
+
+
+def _kalman_setup():
+    objs = [_particle("r1", 1000, 1000), _particle("r2", 3000, 3000), _particle("p", 2000, 2000)]
+    belief = Belief(_env(*objs), 0.0)
+    refs = References.of_scan(objs, belief.seen)
+    return Kalman((0.0, 0.0), 0.0, OPTS), belief, refs
+
+
+def test_kalman_folds_a_reference_in_and_gates_out_one_that_moved_on_its_own():
+    est, belief, refs = _kalman_setup()
+    assert est.measure("r1", (1000.0 + 2.0, 1000.0 - 1.0), np.eye(2), 10.0, refs, [], set()) is True
+    off = est.offset(10.0)
+    assert 0.0 < off[0] <= 2.0 and -1.0 <= off[1] < 0.0          # pulled toward the measured offset
+    assert est.measure("p", (2000.0, 2000.0), np.eye(2), 11.0, refs, ["p"], set()) is None  # pushed
+    assert est.measure("r2", (3000.0 + 900.0, 3000.0), np.eye(2), 12.0, refs, [], set()) is False
+    assert "r2" in refs.gated and not refs.is_reference("r2", [], set())
+
+
+def test_kalman_records_only_moves_long_enough_to_creep_and_keeps_the_rest_for_the_next():
+    est, _, _ = _kalman_setup()
+    small = est.params.creep.min_step / 4
+    est.moved_to((0.0, 0.0), 1.0)
+    est.moved_to((small, 0.0), 2.0)
+    assert est.move_log == []
+    est.moved_to((4 * small, 0.0), 3.0)                          # the small step is carried on
+    assert len(est.move_log) == 1 and est.move_log[0][1] == pytest.approx([4 * small, 0.0])
+
+
+def test_kalman_picks_the_nearest_reference_outside_the_reach_of_the_push():
+    est, belief, refs = _kalman_setup()
+    ref = est.reference_target(0.0, (1100.0, 1000.0), "p", belief, refs, [], {"p"}, OPTS)
+    assert ref == "r2"                                            # r1 is within the push's reach
+    assert est.reference_target(0.0, (2500.0, 2500.0), "p", belief, refs, [], {"p"}, OPTS) == "r2"
+
+
+def test_kalman_goes_on_from_its_state_as_it_was():
+    est, _, refs = _kalman_setup()
+    est.moved_to((0.0, 0.0), 1.0)
+    est.moved_to((2000.0, 0.0), 2.0)
+    est.measure("r1", (1003.0, 998.0), np.eye(2), 30.0, refs, [], set())
+    back = estimator_from_state(est.state_dict(), OPTS)
+    assert type(back) is Kalman
+    for t in (30.0, 60.0, 600.0):
+        assert back.offset(t) == pytest.approx(est.offset(t), abs=1e-9)
+        assert back.radius(t, None, None, OPTS) == pytest.approx(est.radius(t, None, None, OPTS))
+
+
+def test_an_unknown_estimator_state_is_refused():
+    with pytest.raises(ValueError, match="unknown drift estimator"):
+        estimator_from_state({"kind": "magic"}, OPTS)
+
+
+# -- ledger, references, course -----------------------------------------------------------
+def test_the_ledger_gives_up_on_an_object_at_max_failures_and_round_trips():
+    led = RunLedger()
+    assert [led.trouble("a", 3) for _ in range(3)] == [False, False, True]
+    assert led.given_up == {"a"} and led.troubles == {"a": 3}
+    led.fail("a", "slipped")
+    led.pushed_once("a")
+    led.pushed_once("a")
+    led.counts["pushes"] += 2
+    led.times["push"] += 1.5
+    led.drift.append((1.0, 2.0, 3.0))
+    back = RunLedger.from_state(led.state_dict())
+    assert back == led and back.count().pushes == 2
+
+
+def test_references_are_objects_never_pushed_gated_or_lost():
+    objs = [_particle("a", 10, 10), _particle("b", 20, 20)]
+    refs = References.of_scan(objs, Belief(_env(*objs), 3.0).seen)
+    assert refs.is_reference("a", [], set())
+    assert not refs.is_reference("a", ["a"], set())
+    assert not refs.is_reference("a", [], {"a"})
+    assert not refs.is_reference("zzz", [], set())
+    refs.gated.add("b")
+    back = References.from_state(refs.state_dict())
+    assert back.raw == refs.raw and back.gated == {"b"}
+    assert back.first_seen["a"][0] == pytest.approx([10.0, 10.0]) and back.first_seen["a"][1] == 3.0
+
+
+def _op(i, obj, frm, to):
+    return Operation(i, obj, None, (frm, to), Body(obj, "particle", to, 90.0))
+
+
+def test_the_course_chains_expected_starts_and_caps_the_raised_preload():
+    env = _env(_particle("a", 100, 100))
+    ops = [_op(0, "a", (0.0, 100.0), (200.0, 100.0)), _op(1, "a", (200.0, 100.0), (300.0, 100.0))]
+    assert starts(env, ops) == {0: ((100, 100), None), 1: ((200.0, 100.0), None)}
+    course = Course()
+    course.follow(env, ops)
+    for _ in range(10):
+        course.slipped("a")
+    assert course.preload["a"] == 4.0
+    back = Course.from_state(course.state_dict())
+    assert back.preload == course.preload and set(back.starts) == {0, 1}
+
+
+def test_a_rods_course_that_would_touch_a_neighbour_is_not_clear():
+    rod = Body("r", "rod", (1000.0, 1000.0), 60.0, 0.0, 500.0)
+    ahead = [Operation(7, "r", None, ((1000.0, 900.0), (1000.0, 960.0)),
+                       Body("r", "rod", (1000.0, 1100.0), 60.0, 0.0, 500.0))]
+    plan_starts = {7: ((1000.0, 1000.0), 0.0)}
+    far = Body("n", "particle", (1000.0, 1600.0), 90.0)
+    near = Body("n", "particle", (1000.0, 1170.0), 90.0)    # 70 nm from the axis: < 45 + 30 + 10
+    assert course_clear(rod, plan_starts, ahead, [far], 10.0)
+    assert not course_clear(rod, plan_starts, ahead, [near], 10.0)
+
+
+# -- steps against a fake instrument ------------------------------------------------------
+class FakeInstrument:
+    """Answers a step's messages: a clock that advances with writes and lines, a flat
+    sample with one 50 nm bump at ``bump``; records what it was asked."""
+
+    def __init__(self, config: InstrumentConfig, bump=(45000.0, 45000.0)):
+        self.config, self.bump = config, np.asarray(bump)
+        self.t, self.codes = 0.0, config.nm_to_codes(np.array([45000.0, 45000.0, config.lift]))
+        self.lines: list[tuple] = []
+        self.emitted: list[tuple] = []
+
+    def __call__(self, msg: Msg):
+        c = msg.command
+        if c == "clock":
+            return self.t
+        if c == "position":
+            return self.codes
+        if c == "write":
+            path = msg.args[0]
+            n = len(path)
+            ts = self.t + np.arange(1, n + 1) / self.config.sample_rate
+            self.t, self.codes = float(ts[-1]), path[-1]
+            return SignalBlock(ts, np.zeros(n), np.zeros(n))
+        if c == "scan_line":
+            a, b, n = msg.args
+            self.lines.append((a, b, n))
+            pts = np.asarray(a)[None] + np.linspace(0, 1, n)[:, None] * (np.asarray(b) - np.asarray(a))[None]
+            self.t += 0.01 * n
+            return 50.0 * np.exp(-np.sum((pts - self.bump) ** 2, axis=1) / (2 * 30.0 ** 2))
+        if c == "emit":
+            self.emitted.append(msg.args)
+        return None
+
+
+def drive(gen, fake):
+    """Run a step to its end against ``fake``; its return value."""
+    reply = None
+    while True:
+        try:
+            reply = fake(gen.send(reply))
+        except StopIteration as stop:
+            return stop.value
+
+
+def _ctx(strategy="kalman"):
+    cfg = InstrumentConfig()
+    belief = Belief(_env(_particle("a", 1000, 1000)), 0.0)
+    drift = estimator_for(Strategy(strategy), (44000.0, 44000.0), 0.0, OPTS)
+    return RunContext(cfg, ExecOptions(strategy=strategy), drift, belief, References()), FakeInstrument(cfg)
+
+
+def test_travel_is_timed_as_travel_and_told_to_the_creep_model():
+    ctx, fake = _ctx()
+    drive(travel_to(ctx, (47000.0, 45000.0)), fake)
+    assert ctx.ledger.times["travel"] == pytest.approx(fake.t)
+    assert ctx.drift.move_log and ctx.drift.move_log[-1][1][0] == pytest.approx(2000.0, abs=2.0)
+
+
+def test_a_scan_line_beyond_the_range_reads_bare_substrate_there():
+    ctx, fake = _ctx("local-scan")
+    hi = ctx.config.upper[0]
+    profile = drive(scan_line(ctx, np.array([hi - 50.0, 45000.0]), np.array([hi + 50.0, 45000.0]), 101), fake)
+    assert len(profile) == 101 and np.all(np.isfinite(profile))
+    (a, b, n), = fake.lines
+    assert b[0] <= hi and n < 101                                 # only the part within range is sent
+    topic, doc = fake.emitted[-1]
+    assert topic == "scan_line" and len(doc["heights"]) == 101
+
+
+@given(st.floats(-200.0, 200.0), st.floats(-200.0, 200.0))
+def test_a_pattern_counts_one_local_scan_and_its_time_apart_from_travel(dx, dy):
+    ctx, fake = _ctx("local-scan")
+    start = np.array([45000.0 + dx, 45000.0 + dy])
+
+    def pattern():
+        yield type("Line", (), {"a": start, "b": start + (100.0, 0.0), "n": 50})()
+        yield type("Line", (), {"a": start + (0.0, 5.0), "b": start + (100.0, 5.0), "n": 50})()
+        return "done"
+
+    assert drive(run_pattern(ctx, pattern()), fake) == "done"
+    assert ctx.ledger.counts["local_scans"] == 1
+    assert ctx.ledger.times["local_scan"] + ctx.ledger.times["travel"] == pytest.approx(fake.t)
+    assert ctx.scan_ref == 0.0                      # the first line's time: no travel before it
+    assert fake.lines[1][0] == pytest.approx(tuple(start + (0.0, 5.0)))   # no drift: lines unshifted
