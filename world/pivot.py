@@ -1,6 +1,7 @@
 """Rods pushed on a surface: pivot, minimum push force, tip–rod equilibrium, one step.
 
-Seed §4.3 (eq. 4.8–4.20, errata in DESIGN.md). A rod of length L (nm) pushed at the
+Seed §4.3 (eq. 4.8–4.20; eq. 4.13 as printed writes l + √(…) for l > L/2, which with
+eq. 4.10 is l − √(…), and eq. 4.9 is s² − 2ls + lL − L²/2 = 0). A rod of length L (nm) pushed at the
 point l (nm from its reference end A, 0 ≤ l ≤ L) with uniform substrate friction f per
 unit length rotates about a pivot S on its axis at s from A (eq. 4.10); the pivot never
 falls in ((1 − √2/2)L, (√2/2)L). l = L/2 is a bifurcation: the pivot jumps to either end,

@@ -1,6 +1,6 @@
 """The truth of a simulated sample: each object's kind and its own physical constants.
 
-The truth is not the planner's model (issue 3, item 4): every object gets, once, from a
+The truth is not the planner's model, so dry-runs test robustness: every object gets, once, from a
 seeded generator, its own object–substrate friction μos and shear coefficient ν
 (relative spread ``[friction] scatter``), its own adhesion (``[adhesion] scatter``), a
 pivot offset along its axis (``[push] pivot_scatter`` of its length, rods) and a
