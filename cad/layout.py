@@ -41,6 +41,16 @@ class Tolerance:
         return {"position": self.position, "angle": self.angle, "size": self.size}
 
 
+def size_ok(target: Body, obj: Body, tol: Tolerance) -> bool:
+    """Whether ``obj`` has the target's size within ``tol.size`` (relative diameter, and
+    relative length for a rod)."""
+    if abs(obj.diameter - target.diameter) > tol.size * target.diameter:
+        return False
+    if target.kind == "rod" and abs(obj.length - target.length) > tol.size * target.length:
+        return False
+    return True
+
+
 @dataclass(frozen=True)
 class Keepout:
     """A region no object may enter (electrodes, marks), as polygon vertices in nm."""

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from nanoasm.bodies import Body
-from nanoasm.cad.layout import Layout, Tolerance
+from nanoasm.cad.layout import Layout, Tolerance, size_ok
 from nanoasm.world.environment import EnvObject
 
 from .options import PlanOptions
@@ -38,14 +38,6 @@ def axis_error(a: float, b: float) -> float:
     """Smallest difference of two axis angles (degrees, modulo 180), in [0, 90]."""
     d = (a - b) % 180.0
     return min(d, 180.0 - d)
-
-
-def size_ok(target: Body, obj: Body, tol: Tolerance) -> bool:
-    if abs(obj.diameter - target.diameter) > tol.size * target.diameter:
-        return False
-    if target.kind == "rod" and abs(obj.length - target.length) > tol.size * target.length:
-        return False
-    return True
 
 
 def assignable(obj: EnvObject, options: PlanOptions) -> bool:

@@ -7,7 +7,7 @@ import math
 import pytest
 import shapely
 
-from nanoasm.planner.assign import size_ok
+from nanoasm.cad.layout import size_ok
 from nanoasm.world.families import FAMILIES, SLOT_CLEARANCE, family, family_case
 
 

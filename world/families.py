@@ -33,8 +33,7 @@ import numpy as np
 import shapely
 
 from nanoasm.bodies import Body
-from nanoasm.cad.layout import Keepout, Layout, Tolerance, layout_from_dict
-from nanoasm.planner.assign import size_ok
+from nanoasm.cad.layout import Keepout, Layout, Tolerance, layout_from_dict, size_ok
 
 from .params import DriftParams
 from .random_scene import SceneSpec, random_scene
