@@ -29,7 +29,8 @@ class PlanOptions:
         Planning effort for one path, counted in work, not time, so that a plan does not
         depend on how busy the machine is: OMPL may run ``ITERATIONS_PER_UNIT`` (4000)
         iterations a unit, the rod search ``EXPANSIONS_PER_UNIT`` (1500) expansions a
-        unit (:mod:`nanoasm.planner.ompl_setup`); one unit is about a second here.
+        unit (:mod:`nanoasm.planner.ompl_setup`); one unit is about a second here. The
+        threaded planners (prm, prmstar) get one second of wall clock a unit instead.
     rod_limit : float
         Largest aspect ratio σ = L/d pushed as a rigid rod (seed §4.3: 15).
     min_confidence : float

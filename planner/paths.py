@@ -68,11 +68,13 @@ class Mover:
                 and (not relax_b or self._arriving(b2, b)))
 
     def _arriving(self, a: Point, b: Point) -> bool:
-        """Contact-only check of the last part of a move into the goal, with the radius
-        less :attr:`goal_slack`."""
+        """Contact-only check of the last part of a move into the goal: with the radius
+        less :attr:`goal_slack` against fixed things (a slot may touch a keep-out), with
+        the whole radius against the other objects (the slack is no licence to touch one)."""
         geom = shapely.Point(a) if a == b else shapely.LineString([a, b])
-        exempt = self.exempt
-        return self.space.is_free(geom, self.radius - self.goal_slack, (self.id,), exempt, 0.0)
+        if not self.space.is_free(geom, self.radius - self.goal_slack, (self.id,), self.exempt, 0.0):
+            return False
+        return not self.goal_slack or not self.space.blockers(geom, self.radius, (self.id,), clearance=0.0)
 
     def slack(self, p: Point) -> float:
         return self.space.slack(shapely.Point(p), self.radius, (self.id,))
