@@ -23,9 +23,9 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from nanoasm.errors import InstrumentLimitError
+from nanoasm.world.param_spec import ParamError, param, validate
 
 from .heightmap import HeightImage
-from .param_spec import ParamError, param, validate
 
 #: A rectangle ``(x0, y0, x1, y1)`` in the scanner frame, nm.
 Region = tuple[float, float, float, float]
@@ -265,7 +265,7 @@ def ramp(start: np.ndarray, stop: np.ndarray, config: InstrumentConfig,
 class Instrument(Protocol):
     """Everything the executor does to a microscope, and nothing more.
 
-    Implemented by the simulated AFM of :mod:`nanoasm.world` and by each hardware
+    Implemented by the simulated AFM of :mod:`nanoasm.world.sim` and by each hardware
     backend of :mod:`nanoasm.executor` with the same methods, units and failure modes:
     positions in the scanner frame (nm, see the module docstring), time in instrument
     seconds, signals in volts. A command beyond the limits raises
