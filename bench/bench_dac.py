@@ -26,7 +26,7 @@ import numpy as np
 from nanoasm.executor.dac import plan_dac
 from nanoasm.executor.dac_frames import LinearDrift
 from nanoasm.executor.trajectory import operation
-from nanoasm.world.instrument import InstrumentConfig
+from nanoasm.instrument import InstrumentConfig
 
 TARGET = 20.0
 

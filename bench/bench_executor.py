@@ -54,9 +54,9 @@ from nanoasm.dryrun import dry_run
 from nanoasm.executor.bound import physical_bound
 from nanoasm.executor.dac_frames import LinearDrift
 from nanoasm.executor.strategy import ExecOptions
+from nanoasm.instrument import Instrument, InstrumentConfig
 from nanoasm.planner.replan import Replanner
 from nanoasm.world.clock import InstrumentClock
-from nanoasm.world.instrument import Instrument, InstrumentConfig
 from nanoasm.world.random_scene import SceneSpec, random_scene
 from nanoasm.world.scene import load_scene
 from nanoasm.world.sim import SimulatedAFM

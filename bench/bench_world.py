@@ -27,8 +27,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+from nanoasm.instrument import InstrumentConfig, ramp
 from nanoasm.world.cantilever import tip_offset
-from nanoasm.world.instrument import InstrumentConfig, ramp
 from nanoasm.world.random_scene import SceneSpec, random_scene
 from nanoasm.world.sim import SimulatedAFM
 from nanoasm.world.sim_signals import lever_from_params

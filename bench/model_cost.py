@@ -33,9 +33,9 @@ import numpy as np
 from nanoasm.bodies import Body
 from nanoasm.dryrun import dry_run
 from nanoasm.executor.strategy import ExecOptions
+from nanoasm.instrument import ramp
 from nanoasm.world.cantilever import tip_offset
 from nanoasm.world.families import family_case
-from nanoasm.world.instrument import ramp
 from nanoasm.world.random_scene import SceneSpec, random_scene
 from nanoasm.world.scene import Scene
 from nanoasm.world.sim import SimulatedAFM

@@ -57,8 +57,8 @@ from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass
 
 from nanoasm.bodies import Body
+from nanoasm.instrument import InstrumentConfig
 from nanoasm.planner.plan import Operation, Plan
-from nanoasm.world.instrument import InstrumentConfig
 from nanoasm.world.params import TimingParams
 
 from .scan_lines import DEFAULT_OPTIONS, ScanOptions

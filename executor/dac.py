@@ -6,7 +6,7 @@ deflection compensation, inside the scanner range; else an
 exists) and times it (:mod:`nanoasm.executor.trajectory`). :meth:`DacPlan.chunks` then
 renders samples chunk by chunk through the frame stages of
 :mod:`nanoasm.executor.dac_frames`; each chunk passes
-:func:`~nanoasm.world.instrument.check_samples` against the sample before it (the
+:func:`~nanoasm.instrument.check_samples` against the sample before it (the
 instrument's current sample for the first) before it is yielded, so no NaN, no
 out-of-range code and no over-slew step can leave. Memory is one chunk plus a few
 numbers per path vertex, whatever the path's length.
@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from nanoasm.errors import InstrumentLimitError
+from nanoasm.instrument import AXES, InstrumentConfig, check_samples
 from nanoasm.world.cantilever import SEED_LEVER, Cantilever
-from nanoasm.world.instrument import AXES, InstrumentConfig, check_samples
 
 from .dac_frames import (DriftLike, LinearDrift, PushLoad, as_drift, compensate, deflection_offset,
                          drift_at, nm_to_codes, quantisation_error, to_scanner)
@@ -45,7 +45,7 @@ class Chunk:
     Attributes
     ----------
     codes : (n, 3) int64 ndarray
-        XYZ DAC codes, checked by :func:`~nanoasm.world.instrument.check_samples`.
+        XYZ DAC codes, checked by :func:`~nanoasm.instrument.check_samples`.
     t : (n,) ndarray
         Instrument time of each sample, s.
     nm : (n, 3) ndarray
@@ -108,7 +108,7 @@ class DacPlan:
         """Checked chunks of at most ``size`` samples, computed lazily, in order.
 
         Raises :class:`~nanoasm.errors.InstrumentLimitError` (and yields nothing more) if
-        a chunk fails :func:`~nanoasm.world.instrument.check_samples`, which only a
+        a chunk fails :func:`~nanoasm.instrument.check_samples`, which only a
         drift callable misbehaving between its validated values can cause.
         """
         if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:

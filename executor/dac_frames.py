@@ -1,7 +1,7 @@
 """Frame stages from a tip path to DAC codes: drift, scan angle, deflection, codes.
 
 Each stage is a pure function over ``(n, ·)`` arrays. Frames (see
-:mod:`nanoasm.world.instrument`): the *layout frame* is the frame of the run's first full
+:mod:`nanoasm.instrument`): the *layout frame* is the frame of the run's first full
 scan; a sample point at layout position ``p`` lies under the scanner-frame position
 ``p + d(t)`` (``d`` the drift offset); the *scanner frame* is the AFM frame of eq. 3.7 and
 of the DAC (``full_scan`` and ``scan_line`` use it too, so positions are not rotated).
@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from nanoasm.errors import InstrumentLimitError
+from nanoasm.instrument import AXES, InstrumentConfig
 from nanoasm.world.cantilever import SEED_LEVER, Cantilever, tip_offset
-from nanoasm.world.instrument import AXES, InstrumentConfig
 
 #: A drift offset: ``None`` (none), a constant ``(dx, dy)`` in nm, or a callable mapping
 #: times ``(n,)`` s to offsets ``(n, 2)`` nm (vectorised; e.g. :class:`LinearDrift`).

@@ -2,7 +2,7 @@
 
 As in bluesky, a procedure (see :mod:`nanoasm.executor.assembly`) never touches the
 instrument: it ``yield``\\ s :class:`Msg` objects and receives their results. The engine
-executes each against an :class:`~nanoasm.world.instrument.Instrument`, tells its
+executes each against an :class:`~nanoasm.instrument.Instrument`, tells its
 subscribers about events and checkpoints, and moves through an explicit state
 machine::
 
@@ -24,7 +24,7 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from typing import Any
 
-from nanoasm.world.instrument import Instrument
+from nanoasm.instrument import Instrument
 
 #: Commands a procedure may yield, and what each returns.
 COMMANDS = {

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nanoasm.world.instrument import InstrumentConfig, ramp
+from nanoasm.instrument import InstrumentConfig, ramp
 
 
 def z_code(config: InstrumentConfig, z: float) -> int:

@@ -3,7 +3,7 @@
 ``format = "nanoasm.instrument/1"``, in TOML or JSON, with three tables:
 
 ``[scanner]``
-    The :class:`~nanoasm.world.instrument.InstrumentConfig` keys, read exactly as a
+    The :class:`~nanoasm.instrument.InstrumentConfig` keys, read exactly as a
     scene's ``[scanner]`` table. On hardware the keys that decide what reaches the
     piezos are required (:data:`SCANNER_REQUIRED`): a default Bioscope calibration must
     never drive another scanner by omission. ``sample_rate`` is the DAQ's sample clock.
@@ -34,8 +34,8 @@ from dataclasses import dataclass
 
 from nanoasm.errors import InputError
 from nanoasm.fileio import read_document
+from nanoasm.instrument import InstrumentConfig
 from nanoasm.schema import Table, check_format
-from nanoasm.world.instrument import InstrumentConfig
 from nanoasm.world.param_spec import ParamError, from_table, param, validate
 
 FORMAT = "nanoasm.instrument/1"

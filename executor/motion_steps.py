@@ -2,7 +2,7 @@
 drift folded in and its signals watched.
 
 Free generator functions over a :class:`~nanoasm.executor.context.RunContext`; every move
-is within the instrument's slew limits (:func:`nanoasm.world.instrument.ramp` and
+is within the instrument's slew limits (:func:`nanoasm.instrument.ramp` and
 :func:`nanoasm.executor.dac.plan_dac`) and is told to the drift estimator, whose creep
 model follows it.
 """
@@ -33,7 +33,7 @@ DAC_LOG_EVERY = 50
 
 def travel_to(ctx: RunContext, xy):
     """Lifted travel to ``xy`` (scanner frame nm) within the slew limit."""
-    from nanoasm.world.instrument import ramp
+    from nanoasm.instrument import ramp
 
     cfg = ctx.config
     here = yield Msg("position")
@@ -57,7 +57,7 @@ def approach(ctx: RunContext, xy):
 
 def lift(ctx: RunContext):
     """Stop a push: lift the tip straight up within the slew limit."""
-    from nanoasm.world.instrument import ramp
+    from nanoasm.instrument import ramp
 
     cfg = ctx.config
     here = yield Msg("position")

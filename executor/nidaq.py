@@ -1,4 +1,4 @@
-"""An AFM driven through an NI DAQ card: the :class:`~nanoasm.world.instrument.Instrument`
+"""An AFM driven through an NI DAQ card: the :class:`~nanoasm.instrument.Instrument`
 protocol over the ``nidaqmx`` package.
 
 What the lab's controller must do (the seed's own setup, ch. 3.2 and 5.4):
@@ -14,7 +14,7 @@ What the lab's controller must do (the seed's own setup, ch. 3.2 and 5.4):
 - The photodiode's S_n and S_l reach two more AI channels (the signal access module).
 - When the backend starts, the DAC holds the rest output (where :meth:`park` leaves it;
   NI AO channels keep their last value when a task stops): the first stream holds
-  :meth:`~nanoasm.world.instrument.InstrumentConfig.rest_codes`.
+  :meth:`~nanoasm.instrument.InstrumentConfig.rest_codes`.
 
 Streaming (see :mod:`nanoasm.executor.nidaq_stream`): ``write`` blocks until its chunk
 has played and returns the S_n, S_l sampled on the same clock edges; between calls the
@@ -35,8 +35,7 @@ from typing import Self
 import numpy as np
 
 from nanoasm.errors import InstrumentLimitError
-from nanoasm.world.heightmap import HeightImage
-from nanoasm.world.instrument import InstrumentConfig, Region, SignalBlock
+from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock
 
 from .feedback_scan import Raster, bin_mean, lift_in_place, park_path, scan_line_plan
 from .instrument_file import InstrumentFile
@@ -44,7 +43,7 @@ from .nidaq_stream import DaqDriverNotFound, DaqStream, NiApi, NiDaqError
 
 
 class NiDaqInstrument:
-    """The :class:`~nanoasm.world.instrument.Instrument` of an AFM behind an NI DAQ card.
+    """The :class:`~nanoasm.instrument.Instrument` of an AFM behind an NI DAQ card.
 
     Parameters
     ----------

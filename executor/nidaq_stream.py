@@ -15,7 +15,7 @@ AO sample ``k``; :meth:`DaqStream.play` returns exactly the AI samples of its ch
 read by absolute index (``relative_to = FIRST_SAMPLE``, ``offset = k``). The AI buffer
 overwrites unread samples: while nothing is playing nobody needs them.
 
-Every chunk passes :func:`~nanoasm.world.instrument.check_samples` against the last
+Every chunk passes :func:`~nanoasm.instrument.check_samples` against the last
 queued sample before it is queued; nothing else reaches the DAQ. Errors of the driver
 become one-line :class:`NiDaqError`\\ s.
 """
@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from nanoasm.errors import NanoasmError
-from nanoasm.world.instrument import InstrumentConfig, check_samples
+from nanoasm.instrument import InstrumentConfig, check_samples
 
 from .instrument_file import TERMINALS, DaqConfig
 

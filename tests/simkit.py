@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
+from nanoasm.instrument import ramp
 from nanoasm.world.cantilever import tip_offset
-from nanoasm.world.instrument import ramp
 from nanoasm.world.params import CreepParams, PushParams, VdwParams, WorldParams
 from nanoasm.world.scene import Scene
 from nanoasm.world.sim import SimulatedAFM

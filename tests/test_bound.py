@@ -11,8 +11,8 @@ from nanoasm.cad.layout import layout_from_dict
 from nanoasm.dryrun import dry_run
 from nanoasm.executor.bound import Bound, physical_bound
 from nanoasm.executor.strategy import ExecOptions
+from nanoasm.instrument import InstrumentConfig
 from nanoasm.planner.plan import Expect, Operation, Plan
-from nanoasm.world.instrument import InstrumentConfig
 from nanoasm.world.params import TimingParams
 from nanoasm.world.scene import scene_from_dict
 

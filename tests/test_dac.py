@@ -15,8 +15,8 @@ from nanoasm.executor.dac import plan_dac
 from nanoasm.executor.dac_frames import (LinearDrift, PushLoad, compensate, deflection_offset,
                                          quantisation_error, uncompensate)
 from nanoasm.executor.trajectory import LIFT, LOWER, PUSH, TRAVEL, Move, operation
+from nanoasm.instrument import InstrumentConfig, check_samples
 from nanoasm.world.cantilever import SEED_LEVER, Cantilever
-from nanoasm.world.instrument import InstrumentConfig, check_samples
 
 CFG = InstrumentConfig()
 REST = CFG.rest_codes()

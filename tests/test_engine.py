@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from nanoasm.executor.engine import Msg, RunEngine, RunState, Terminated
-from nanoasm.world.heightmap import HeightImage
-from nanoasm.world.instrument import InstrumentConfig, SignalBlock, check_samples, ramp
+from nanoasm.instrument import HeightImage, InstrumentConfig, SignalBlock, check_samples, ramp
 
 
 class Stage:

@@ -25,10 +25,10 @@ from nanoasm.executor.motion_steps import travel_to
 from nanoasm.executor.references import References
 from nanoasm.executor.scan_steps import run_pattern, scan_line
 from nanoasm.executor.strategy import ExecOptions, Strategy
+from nanoasm.instrument import InstrumentConfig, SignalBlock
 from nanoasm.planner import Operation
 from nanoasm.planner.plan import Plan
 from nanoasm.world.environment import EnvObject, Environment
-from nanoasm.world.instrument import InstrumentConfig, SignalBlock
 
 OPTS = ExecOptions()
 

@@ -22,9 +22,9 @@ from nanoasm.cad.layout import Keepout, Layout
 from nanoasm.drift import DriftFilter, DriftFilterParams
 from nanoasm.executor.monitor import PushMonitor
 from nanoasm.executor.strategy import ExecOptions
+from nanoasm.instrument import InstrumentConfig
 from nanoasm.world.cantilever import tip_force_afm
 from nanoasm.world.families import family_case
-from nanoasm.world.instrument import InstrumentConfig
 from nanoasm.world.params import DriftParams, FaultParams, FrictionParams, TipParams
 from nanoasm.world.particle_push import theta_max_deg
 from nanoasm.world.scene import Scene

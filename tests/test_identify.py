@@ -10,7 +10,7 @@ import shapely
 
 from nanoasm.bodies import Body
 from nanoasm.errors import InputError
-from nanoasm.world.heightmap import HeightImage
+from nanoasm.instrument import HeightImage
 from nanoasm.world.identify import analyse, identify
 from nanoasm.world.levelling import default_cut, level
 from nanoasm.world.render import make_surface, render_scan

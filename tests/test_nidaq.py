@@ -16,7 +16,7 @@ from nanoasm.examples import path as example_path
 from nanoasm.executor.feedback_scan import z_code
 from nanoasm.executor.instrument_file import instrument_from_dict
 from nanoasm.executor.nidaq import DaqDriverNotFound, NiDaqError, NiDaqInstrument
-from nanoasm.world.instrument import Instrument, check_samples, ramp
+from nanoasm.instrument import Instrument, check_samples, ramp
 
 EXAMPLE = example_path("instrument_ni.toml")
 

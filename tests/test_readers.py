@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from nanoasm.errors import InputError
-from nanoasm.world.heightmap import HeightImage
+from nanoasm.instrument import HeightImage
 from nanoasm.world.readers import read_height_image, save_height_image
 
 RNG = np.random.default_rng(0)

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from nanoasm.world.instrument import Instrument, InstrumentConfig
+from nanoasm.instrument import Instrument, InstrumentConfig
 from nanoasm.world.params import AdhesionParams, DriftParams, PushParams
 from nanoasm.world.pivot import RodPose, pivot_position, rod_step
 from simkit import EXACT, particle, path_codes, preload_offset, push, rod, world

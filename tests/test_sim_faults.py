@@ -12,7 +12,7 @@ from nanoasm.world.params import FaultParams
 
 LOST_DISTANCE = (FaultParams().lost_min, FaultParams().lost_max)
 SLIP_AFTER = (FaultParams().slip_after_min, FaultParams().slip_after_max)
-from nanoasm.world.instrument import InstrumentConfig
+from nanoasm.instrument import InstrumentConfig
 from nanoasm.world.params import FaultParams
 from simkit import EXACT, particle, push, rod, world
 

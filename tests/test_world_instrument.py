@@ -10,8 +10,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from nanoasm.errors import InstrumentLimitError
-from nanoasm.world.heightmap import HeightImage
-from nanoasm.world.instrument import (
+from nanoasm.instrument import (
+    HeightImage,
     Instrument,
     InstrumentConfig,
     SignalBlock,

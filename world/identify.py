@@ -24,10 +24,10 @@ import shapely
 from scipy import ndimage
 
 from nanoasm.errors import InputError
+from nanoasm.instrument import HeightImage
 
 from .environment import Environment, EnvObject, EnvObstacle
 from .grains import EIGHT, label_grains, mask_polygon, touches_border
-from .heightmap import HeightImage
 from .levelling import Levelled, default_cut, level
 from .pieces import Context, Piece, tolerance
 from .resolve import Grain, measure_grain, resolve_grain

@@ -17,9 +17,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from nanoasm.errors import InputError
+from nanoasm.instrument import InstrumentConfig
 from nanoasm.schema import Table
 
-from .instrument import InstrumentConfig
 from .param_spec import ParamError, from_table, markdown_rows, param, to_table, validate
 
 

@@ -35,8 +35,8 @@ import numpy as np
 
 from nanoasm.errors import InputError
 from nanoasm.fileio import write_atomic
+from nanoasm.instrument import HeightImage
 
-from .heightmap import HeightImage
 from .readers_instrument import read_gwy, read_ibw, read_jpk, read_spm, read_stp, short_message
 from .readers_text import parse_matrix, parse_xyz
 

@@ -25,9 +25,9 @@ import numpy as np
 import shapely
 
 from nanoasm.bodies import Body
+from nanoasm.instrument import HeightImage
 from nanoasm.schema import Point
 
-from .heightmap import HeightImage
 from .roughness import Roughness, make_roughness
 from .tipimage import Tip, ball_image, ball_reach, plateau_image, segment_distance, tip_reach
 

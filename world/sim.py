@@ -1,11 +1,11 @@
-"""The simulated AFM: an :class:`~nanoasm.world.instrument.Instrument` over a scene's truth.
+"""The simulated AFM: an :class:`~nanoasm.instrument.Instrument` over a scene's truth.
 
 :class:`SimulatedAFM` is a first-class instrument (ophyd's simulated devices): the
 executor drives it exactly as it drives hardware, through ``write``, ``full_scan``,
 ``scan_line``, ``signals``, ``clock`` and ``park``, and cannot tell the two apart.
 
 Frames. The *sample frame* is the scene's (and the layout's) frame. The *scanner frame*
-is the DAC's (see :mod:`nanoasm.world.instrument`): a sample point ``p`` lies under the
+is the DAC's (see :mod:`nanoasm.instrument`): a sample point ``p`` lies under the
 scanner position ``p + d(t)``, ``d`` the drift offset of
 :class:`~nanoasm.world.drift_model.DriftModel` (zero at the clock's start time, 0 unless
 given, before the run's first scan). The deflected tip sits at ``piezo + R(ψ)⁻¹ δ`` (eq. 3.30-3.34).
@@ -38,11 +38,10 @@ from dataclasses import replace
 import numpy as np
 
 from nanoasm.bodies import Body
+from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock, check_samples, ramp
 
 from .clock import InstrumentClock
 from .drift_model import DriftModel
-from .heightmap import HeightImage
-from .instrument import InstrumentConfig, Region, SignalBlock, check_samples, ramp
 from .params import WorldParams
 from .render import make_surface, render_line, render_scan
 from .scene import Scene
