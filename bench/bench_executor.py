@@ -56,10 +56,9 @@ from nanoasm.executor.dac_frames import LinearDrift
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.instrument import Instrument, InstrumentConfig
 from nanoasm.planner.replan import Replanner
-from nanoasm.world.clock import InstrumentClock
 from nanoasm.world.random_scene import SceneSpec, random_scene
 from nanoasm.world.scene import load_scene
-from nanoasm.world.sim import SimulatedAFM
+from nanoasm.world.sim import InstrumentClock, SimulatedAFM
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent

@@ -30,8 +30,7 @@ import numpy as np
 from nanoasm.instrument import InstrumentConfig, ramp
 from nanoasm.world.cantilever import tip_offset
 from nanoasm.world.random_scene import SceneSpec, random_scene
-from nanoasm.world.sim import SimulatedAFM
-from nanoasm.world.sim_signals import lever_from_params
+from nanoasm.world.sim import SimulatedAFM, lever_from_params
 
 STEP_TARGET, SCAN_TARGET = 1.0e4, 0.5
 

@@ -38,8 +38,7 @@ from nanoasm.world.cantilever import tip_offset
 from nanoasm.world.families import family_case
 from nanoasm.world.random_scene import SceneSpec, random_scene
 from nanoasm.world.scene import Scene
-from nanoasm.world.sim import SimulatedAFM
-from nanoasm.world.sim_signals import lever_from_params
+from nanoasm.world.sim import SimulatedAFM, lever_from_params
 
 ROD = dict(kind="rod", diameter=70.0, angle=30.0, length=600.0)
 

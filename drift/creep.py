@@ -4,7 +4,7 @@ After a move of the scanner by a step ``s`` (nm vector) completed at ``t_s``, th
 keeps extending along the step: ``c s log10(1 + (t - t_s) / τ)``. The tip then sits that
 much further along ``s`` than commanded, so the sample appears shifted back: creep adds
 ``-c s log10(1 + (t - t_s) / τ)`` to the measured offset (the convention of
-``nanoasm.world.drift_model``: offset = thermal - creep). The filter subtracts this
+``nanoasm.world.sim.drift_model``: offset = thermal - creep). The filter subtracts this
 input from each measurement and adds it to each predicted offset; its state keeps the
 thermal drift alone.
 

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+from nanoasm.bodies import Body
 from nanoasm.instrument import ramp
 from nanoasm.world.cantilever import tip_offset
 from nanoasm.world.params import CreepParams, PushParams, VdwParams, WorldParams
 from nanoasm.world.scene import Scene
-from nanoasm.world.sim import SimulatedAFM
-from nanoasm.world.sim_signals import lever_from_params
-
-from nanoasm.bodies import Body
+from nanoasm.world.sim import SimulatedAFM, lever_from_params
 
 #: No scatter in pivot and path, no van der Waals error, no creep: the model's own motion.
 EXACT = WorldParams(push=PushParams(pivot_scatter=0.0, path_scatter=0.0), vdw=VdwParams(amplitude=0.0),

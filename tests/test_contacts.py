@@ -11,8 +11,8 @@ from hypothesis import assume, given
 from hypothesis import strategies as st
 
 from nanoasm.bodies import Body, overlapping_pairs
-from nanoasm.world.contacts import ContactSpace, resolve_contacts
 from nanoasm.world.params import VdwParams
+from nanoasm.world.sim.contact_space import ContactSpace, resolve_contacts
 
 
 def particle(i, x, y, d=100.0) -> Body:

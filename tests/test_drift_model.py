@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from nanoasm.world.drift_model import DriftModel
 from nanoasm.world.params import CreepParams, DriftParams
+from nanoasm.world.sim import DriftModel
 
 DRIFT = DriftParams()
 CREEP = CreepParams()
@@ -152,7 +152,7 @@ def test_short_moves_carry_their_displacement_into_the_next_move():
     """The simulator's move tracker: a move under min_step is not recorded and does not
     restart the chain, so every displacement creeps (creep is linear in the step)."""
     from nanoasm.world.params import CreepParams, DriftParams
-    from nanoasm.world.sim_stream import MoveTracker
+    from nanoasm.world.sim.stream import MoveTracker
 
     m = DriftModel(DriftParams(velocity=(0.0, 0.0), random_walk=0.0),
                    CreepParams(amplitude=0.01, tau=0.1, min_step=500.0), np.random.default_rng(0))

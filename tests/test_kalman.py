@@ -496,7 +496,7 @@ def test_creep_closed_form_and_rate():
 
 
 def test_creep_sign_matches_the_simulated_world():
-    from nanoasm.world.drift_model import DriftModel
+    from nanoasm.world.sim import DriftModel
     from nanoasm.world.params import CreepParams, DriftParams
 
     world = DriftModel(DriftParams(velocity=(0.0, 0.0), random_walk=0.0),

@@ -7,8 +7,8 @@ import math
 
 import numpy as np
 import pytest
-from nanoasm.world.faults import draw_push_faults
 from nanoasm.world.params import FaultParams
+from nanoasm.world.sim import draw_push_faults
 
 LOST_DISTANCE = (FaultParams().lost_min, FaultParams().lost_max)
 SLIP_AFTER = (FaultParams().slip_after_min, FaultParams().slip_after_max)

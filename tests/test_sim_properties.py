@@ -11,10 +11,11 @@ import pytest
 import shapely
 from hypothesis import given
 from hypothesis import strategies as st
-from nanoasm.world import sim_push, sim_rods
 from nanoasm.world.params import WorldParams
 from nanoasm.world.random_scene import SceneSpec, random_scene
 from nanoasm.world.sim import SimulatedAFM
+from nanoasm.world.sim import push as sim_push
+from nanoasm.world.sim import rods as sim_rods
 from simkit import particle, path_codes, push, rod, world
 
 from nanoasm.bodies import Body, overlapping_pairs

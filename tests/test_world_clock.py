@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 
 from nanoasm.executor.report import InstrumentTime
-from nanoasm.world.clock import (
+from nanoasm.world.params import TimingParams
+from nanoasm.world.sim.clock import (
     ACTIVITIES,
     InstrumentClock,
     full_scan_time,
@@ -13,7 +14,6 @@ from nanoasm.world.clock import (
     scan_line_time,
     travel_time,
 )
-from nanoasm.world.params import TimingParams
 
 T = TimingParams()
 

@@ -1,6 +1,6 @@
 """The simulated world's contact space: footprints that the tip moves, turns and bends.
 
-:class:`SimContacts` extends :class:`nanoasm.world.contacts.ContactSpace` (translation
+:class:`SimContacts` extends :class:`nanoasm.world.sim.contact_space.ContactSpace` (translation
 pushes with chain shoving, uniform-grid index) with what the simulated AFM needs beyond
 translation:
 
@@ -27,7 +27,7 @@ import numpy as np
 
 from nanoasm.bodies import Body
 
-from .contacts import ContactSpace
+from .contact_space import ContactSpace
 
 
 class SimContacts(ContactSpace):

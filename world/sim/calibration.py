@@ -26,15 +26,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cantilever import (
+from nanoasm.world.cantilever import (
     LateralCalibration,
     calibrate_lateral_gain,
     crosstalk_from_force_curve,
     normal_gain_from_force_curve,
 )
-from .params import WorldParams
-from .particle_push import adhesion_from_pull_off
-from .sim_signals import SignalModel
+from nanoasm.world.params import WorldParams
+from nanoasm.world.particle_push import adhesion_from_pull_off
+
+from .signals import SignalModel
 
 
 @dataclass(frozen=True, eq=False)

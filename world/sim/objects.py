@@ -26,11 +26,11 @@ from enum import IntEnum
 import numpy as np
 
 from nanoasm.bodies import Body
+from nanoasm.world.params import WorldParams
+from nanoasm.world.particle_push import particle_adhesions
+from nanoasm.world.pivot import Regime, aspect_regime
 
-from .params import WorldParams
-from .particle_push import particle_adhesions
-from .pivot import Regime, aspect_regime
-from .sim_wire import initial_nodes, segment_bodies, segment_count
+from .wire import initial_nodes, segment_bodies, segment_count
 
 
 

@@ -3,7 +3,7 @@
 A *push* starts when the tip, in contact with the substrate, first touches an object; it
 lasts while the tip stays within the contact distance (plus ``[sim] release`` nm), and ends
 when the tip lifts or leaves. At its start the push's faults are drawn
-(:mod:`nanoasm.world.faults`) and its outcome decided by the seed's equilibrium
+(:mod:`nanoasm.world.sim.faults`) and its outcome decided by the seed's equilibrium
 (eq. 4.6-4.7 for particles and wires, 4.19-4.20 for rods, every step as the contact
 slides): with the normal force F_z below F̄z, or θ ≥ θmax, the tip *rides* over the
 object (slips over it) and the object stays.
@@ -16,13 +16,13 @@ Motion per step (tip from ``p0`` to ``p1``, sample frame, nm):
   error, back to the contact distance; outside that cone it slides round the tip along
   the contact normal, frictionless (:func:`~nanoasm.world.particle_push.particle_step`),
   and is soon lost;
-- rod: :func:`~nanoasm.world.sim_rods.rod_motion`; wire:
-  :func:`~nanoasm.world.sim_rods.wire_motion`;
+- rod: :func:`~nanoasm.world.sim.rods.rod_motion`; wire:
+  :func:`~nanoasm.world.sim.rods.wire_motion`;
 - a stuck object, or one that would enter an obstacle, does not move: the lateral force
   rises by the lever's stiffness (``lateral_gain / C1``) times the piezo's overshoot until
   its vertical part lifts the tip over the object.
 
-What an object shoves moves through :class:`~nanoasm.world.sim_contacts.SimContacts`;
+What an object shoves moves through :class:`~nanoasm.world.sim.contacts.SimContacts`;
 when a push ends, each moved object that ends near another gets the random van der Waals
 error of ``[vdw]`` (seed 3.6.1), once. Forces in nN.
 """
@@ -32,13 +32,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from nanoasm.world.particle_push import PushOutcome, particle_step, push_lateral_force, push_outcome
+from nanoasm.world.pivot import rho, rod_push_outcome
+
 from .faults import PushFaults, draw_push_faults
-from .particle_push import PushOutcome, particle_step, push_lateral_force, push_outcome
-from .pivot import rho, rod_push_outcome
-from .sim_objects import Kind
-from .sim_push_support import PushWorld
-from .sim_rods import rod_motion, wire_motion
-from .sim_wire import affect_radius
+from .objects import Kind
+from .push_support import PushWorld
+from .rods import rod_motion, wire_motion
+from .wire import affect_radius
 
 #: A tip step shorter than this (nm; drift alone, or a Z-only move) pushes nothing.
 STILL = 1e-3

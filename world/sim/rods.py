@@ -1,5 +1,5 @@
 """One tip step against a rod or a wire: the new pose, from the seed's rod model and the
-wire's local bending (pure functions; the bookkeeping is :mod:`nanoasm.world.sim_push`).
+wire's local bending (pure functions; the bookkeeping is :mod:`nanoasm.world.sim.push`).
 
 Rods (σ ≤ 25) turn by :func:`~nanoasm.world.pivot.rod_step`: the pivot of eq. 4.10 for the
 contact point, the contact sliding along the rod, the tip leaving past an end. The truth
@@ -12,7 +12,7 @@ departs from the model in two ways:
   the end picked by the push's random ``branch``.
 
 Wires (σ > 25) bend within the affecting region around the contact
-(:mod:`nanoasm.world.sim_wire`); the contact point is put back at the contact distance
+(:mod:`nanoasm.world.sim.wire`); the contact point is put back at the contact distance
 from the tip, as :func:`~nanoasm.world.particle_push.particle_step` does for a particle.
 Lengths in nm, angles in degrees.
 """
@@ -25,9 +25,9 @@ from typing import NamedTuple
 import numpy as np
 
 from nanoasm.bodies import Body
+from nanoasm.world.pivot import RodPose, rod_step
 
-from .pivot import RodPose, rod_step
-from .sim_wire import bend, closest_point
+from .wire import bend, closest_point
 
 
 
@@ -79,7 +79,7 @@ def wire_motion(nodes: np.ndarray, diameter: float, p1: tuple[float, float], *, 
 
     The nearest point of the wire is moved to the contact distance from the tip (along
     the line from the tip through it, or along ``step`` if the tip sits on the axis) and
-    the wire bends within ``affect`` nm of it (:func:`~nanoasm.world.sim_wire.bend`).
+    the wire bends within ``affect`` nm of it (:func:`~nanoasm.world.sim.wire.bend`).
     """
     rc = 0.5 * diameter + tip_radius
     k, f, dist = closest_point(nodes, p1)

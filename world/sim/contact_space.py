@@ -26,8 +26,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from nanoasm.bodies import TOUCH_EPS, Body
-
-from .params import VdwParams
+from nanoasm.world.params import VdwParams
 
 _GAP = 1e-7  # relative clearance left between separated footprints
 _MAX_SWEEPS = 2000

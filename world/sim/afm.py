@@ -7,7 +7,7 @@ executor drives it exactly as it drives hardware, through ``write``, ``full_scan
 Frames. The *sample frame* is the scene's (and the layout's) frame. The *scanner frame*
 is the DAC's (see :mod:`nanoasm.instrument`): a sample point ``p`` lies under the
 scanner position ``p + d(t)``, ``d`` the drift offset of
-:class:`~nanoasm.world.drift_model.DriftModel` (zero at the clock's start time, 0 unless
+:class:`~nanoasm.world.sim.drift_model.DriftModel` (zero at the clock's start time, 0 unless
 given, before the run's first scan). The deflected tip sits at ``piezo + R(ψ)⁻¹ δ`` (eq. 3.30-3.34).
 
 Contact rule. The tip touches the substrate when the commanded ``z ≤ 0`` (``z = -preload``
@@ -39,22 +39,22 @@ import numpy as np
 
 from nanoasm.bodies import Body
 from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock, check_samples, ramp
+from nanoasm.world.params import WorldParams
+from nanoasm.world.render import make_surface, render_line, render_scan
+from nanoasm.world.scene import Scene
 
-from .clock import InstrumentClock
-from .drift_model import DriftModel
-from .params import WorldParams
-from .render import make_surface, render_line, render_scan
-from .scene import Scene
-from .sim_calibration import (
+from .calibration import (
     ForceCurve,
     FrictionLoop,
     force_curve_signals,
     friction_loop_signals,
 )
-from .sim_objects import build_objects
-from .sim_push import PushPhysics
-from .sim_signals import SignalModel
-from .sim_stream import MoveTracker, TipState, play_chunk
+from .clock import InstrumentClock
+from .drift_model import DriftModel
+from .objects import build_objects
+from .push import PushPhysics
+from .signals import SignalModel
+from .stream import MoveTracker, TipState, play_chunk
 
 
 TAPPING, CONTACT = "tapping", "contact"

@@ -23,14 +23,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .cantilever import (
+from nanoasm.world.cantilever import (
     Cantilever,
     raw_signals,
     scan_rotation,
     signals_from_force,
     to_cantilever,
 )
-from .params import WorldParams
+from nanoasm.world.params import WorldParams
 
 
 

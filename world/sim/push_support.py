@@ -1,8 +1,8 @@
 """The state the pushing physics works on: objects, contact units, wires, obstacles, tip.
 
 :class:`PushWorld` keeps the truth of every object in a
-:class:`~nanoasm.world.sim_contacts.SimContacts` (one unit per particle or rod, one per
-wire segment) and answers the geometric questions of :mod:`nanoasm.world.sim_push`:
+:class:`~nanoasm.world.sim.contacts.SimContacts` (one unit per particle or rod, one per
+wire segment) and answers the geometric questions of :mod:`nanoasm.world.sim.push`:
 which objects lie near a box (vectorised over all units, so idle objects cost one array
 operation per chunk), the gap from the tip to an object, the height the apex rides at
 over it, whether a pose enters an obstacle; it moves whole objects (translate, jump) and
@@ -17,12 +17,12 @@ import numpy as np
 import shapely
 
 from nanoasm.bodies import Body
+from nanoasm.world.params import WorldParams
+from nanoasm.world.tipimage import Tip, ball_image, plateau_image, segment_distance, tip_reach
 
-from .params import WorldParams
-from .sim_contacts import SimContacts
-from .sim_objects import Kind, ObjectTable
-from .sim_wire import chord_body, segment_body, sync_nodes
-from .tipimage import Tip, ball_image, plateau_image, segment_distance, tip_reach
+from .contacts import SimContacts
+from .objects import Kind, ObjectTable
+from .wire import chord_body, segment_body, sync_nodes
 
 
 class PushWorld:

@@ -25,7 +25,7 @@ import math
 
 import numpy as np
 
-from .params import CreepParams, DriftParams
+from nanoasm.world.params import CreepParams, DriftParams
 
 _BLOCK = 4096  # grid steps per noise block
 

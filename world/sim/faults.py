@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .params import FaultParams
+from nanoasm.world.params import FaultParams
 
 
 

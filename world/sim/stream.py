@@ -5,7 +5,7 @@ The chunk's samples are split into runs. A sample is *slow* when the tip is in c
 *fast*: lifted, or in contact far from every object. Fast runs cost a few array
 operations whatever their length and however many objects the sample holds (a lifted
 sample higher than the tallest object skips even the spatial query); slow runs step the
-pushing physics (:class:`~nanoasm.world.sim_push.PushPhysics`) once per sample. Pushes in
+pushing physics (:class:`~nanoasm.world.sim.push.PushPhysics`) once per sample. Pushes in
 progress end at the first fast sample. Once a slow run has moved something, the rest of
 the chunk is classified again.
 
@@ -23,8 +23,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .drift_model import DriftModel
-from .sim_push import PushPhysics
-from .sim_signals import SignalModel, twist_deg
+from .push import PushPhysics
+from .signals import SignalModel, twist_deg
 
 
 @dataclass

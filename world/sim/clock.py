@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 
-from .params import TimingParams
+from nanoasm.world.params import TimingParams
 
 #: Activities of the ledger, in report order (``total`` is their sum).
 ACTIVITIES = ("full_scan", "local_scan", "push", "travel")
