@@ -11,7 +11,7 @@ a few seeds each, all in one run:
   a timing proxy around the ``SimulatedAFM`` that implements the same ``Instrument``
   protocol (``dry_run`` is given it by replacing the ``SimulatedAFM`` name in
   ``nanoasm.dryrun`` for the duration of the run). Correction pushes are planned inside
-  the execute phase (``Assembly._correction``); that planning is timed too and shown on
+  the execute phase (``nanoasm.executor.course.correction``); that planning is timed too and shown on
   its own. Target <= 10 ms per push.
 - **where the overhead goes**: one more run under cProfile, paused whenever the
   instrument, identification or planning runs, so only the executor's own time remains;
@@ -137,7 +137,7 @@ def instrumented(watch: Stopwatch):
     assembly.identify = watch.wrap(saved[1], "identify")
     Replanner.start = watch.wrap(saved[2], "plan")
     Replanner.remainder = watch.wrap(saved[3], "plan")
-    planner.plan_assembly = watch.wrap(saved[4], "correction plan")   # looked up by _correction
+    planner.plan_assembly = watch.wrap(saved[4], "correction plan")   # looked up by course.correction
     InstrumentClock.mode_switch = watch.wrap(saved[5], "mode switch")  # counted: the simulator's charge
     try:
         yield
