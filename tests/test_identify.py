@@ -11,10 +11,8 @@ import shapely
 from nanoasm.bodies import Body
 from nanoasm.errors import InputError
 from nanoasm.instrument import HeightImage
-from nanoasm.world.identify import analyse, identify
-from nanoasm.world.levelling import default_cut, level
+from nanoasm.world.identify import analyse, default_cut, fit_ball, fit_capsule, identify, level
 from nanoasm.world.render import make_surface, render_scan
-from nanoasm.world.shapefit import fit_ball, fit_capsule
 from nanoasm.world.tipimage import Tip, ball_image, ball_reach
 
 TIP = Tip(10.0, 20.0)

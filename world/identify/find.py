@@ -1,11 +1,11 @@
 """Identification: a height image in, the environment (objects and obstacles) out.
 
 The pipeline follows the seed's cut plane (section 3.2): level the image
-(:mod:`~nanoasm.world.levelling`), keep what rises above a cut plane ``cut`` nm over the
+(:mod:`.levelling`), keep what rises above a cut plane ``cut`` nm over the
 substrate, drop regions smaller than ``min_area``, split each region at its separate
-peaks (:mod:`~nanoasm.world.grains`), and classify every piece by fitting the exact tip
-image of a ball or a straight capsule (:mod:`~nanoasm.world.pieces`,
-:mod:`~nanoasm.world.resolve`). Pieces of one region that are not clean objects, and
+peaks (:mod:`.grains`), and classify every piece by fitting the exact tip
+image of a ball or a straight capsule (:mod:`.pieces`,
+:mod:`.resolve`). Pieces of one region that are not clean objects, and
 objects that touch each other (aggregates), become obstacles: the outline of their
 pixels above the cut (holes filled), with their height.
 
@@ -25,13 +25,13 @@ from scipy import ndimage
 
 from nanoasm.errors import InputError
 from nanoasm.instrument import HeightImage
+from nanoasm.world.environment import Environment, EnvObject, EnvObstacle
+from nanoasm.world.tipimage import Tip
 
-from .environment import Environment, EnvObject, EnvObstacle
 from .grains import EIGHT, label_grains, mask_polygon, touches_border
 from .levelling import Levelled, default_cut, level
 from .pieces import Context, Piece, tolerance
 from .resolve import Grain, measure_grain, resolve_grain
-from .tipimage import Tip
 
 #: With the automatic cut, a region must rise this many sigmas above the cut.
 AUTO_MARGIN = 3.0

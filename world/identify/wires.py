@@ -16,7 +16,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 from skimage.morphology import skeletonize
 
-from .tipimage import Tip, ball_reach
+from nanoasm.world.tipimage import Tip, ball_reach
 
 #: A thin curve is a wire when its length is at least this many widths.
 WIRE_ELONGATION = 5.0

@@ -1,7 +1,7 @@
 """Measuring and classifying one piece of a grain (one candidate object).
 
 :func:`measure_piece` fits the exact tip image of a ball or a straight capsule
-(:mod:`nanoasm.world.shapefit`) to a piece's pixels; :func:`classify` then decides by
+(:mod:`.shapefit`) to a piece's pixels; :func:`classify` then decides by
 how well the fit explains them. "Well" is relative to the image: real particles are
 not perfect spheres and real tips are not the model's, so the tolerance on the excess
 residual is set from the median of all fits of the image (:func:`tolerance`), between
@@ -28,8 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from nanoasm.world.tipimage import Tip, ball_reach
+
 from .shapefit import ShapeFit, capsule_model, fit_ball, fit_capsule
-from .tipimage import Tip, ball_reach
 from .wires import strand_length
 
 #: Least number of pixels (piece and rim) for a shape fit.

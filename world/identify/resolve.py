@@ -15,9 +15,10 @@ import numpy as np
 import shapely
 from scipy import ndimage
 
+from nanoasm.world.tipimage import ball_image
+
 from .grains import EIGHT, split_grain
 from .pieces import Context, Measured, Piece, classify, measure_piece
-from .tipimage import ball_image
 
 #: Pixels of substrate around a piece that its shape fit also uses.
 RIM = 2

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from .tipimage import Tip, ball_image
+from nanoasm.world.tipimage import Tip, ball_image
 
 #: Least and greatest tip radius (nm) the fit may use.
 TIP_BOUNDS = (0.5, 500.0)
