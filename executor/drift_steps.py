@@ -25,11 +25,12 @@ def emit_drift(ctx: RunContext, t: float):
         yield Msg("emit", ("drift", ctx.drift.doc(t)))
 
 
-def fold(ctx: RunContext, obj_id: str, scanner_at, cov, t: float) -> bool:
+def fold(ctx: RunContext, obj_id: str, scanner_at, cov, t: float, *, reference: bool = False) -> bool:
     """Fold a measured position (scanner frame) of ``obj_id`` into the drift estimate, if
-    it measures drift; False only when the estimate's gate rejected it (it moved on its
-    own)."""
-    folded = ctx.drift.measure(obj_id, scanner_at, cov, t, ctx.refs, ctx.ledger.pushed, ctx.belief.lost)
+    it measures drift (``reference``: the reference the estimator chose); False only when
+    the estimate's gate rejected it (it moved on its own)."""
+    measure = ctx.drift.measure_reference if reference else ctx.drift.measure
+    folded = measure(obj_id, scanner_at, cov, t, ctx.refs, ctx.ledger.pushed, ctx.belief.lost)
     if folded is not None:
         ctx.log_drift(t)
     return folded is not False
@@ -49,7 +50,7 @@ def take_reference(ctx: RunContext, near, obj_id: str | None = None):
             ctx.belief.lose(ref)
         return
     body, cov, t, _ = found
-    if not fold(ctx, ref, body.at, cov, t):
+    if not fold(ctx, ref, body.at, cov, t, reference=True):
         yield Msg("event", (f"{ref} moved on its own (gated out of the drift estimate)",), {"level": "warn"})
     yield from emit_drift(ctx, t)
     if ctx.drift.references_are_objects:

@@ -62,6 +62,8 @@ class DriftEstimator(Protocol):
     def reference_target(self, t: float, near, obj_id, belief, refs: References, pushed,
                          moving, options: ExecOptions) -> str | None: ...
     def measure(self, obj_id: str, at, cov, t: float, refs: References, pushed, lost) -> bool | None: ...
+    def measure_reference(self, obj_id: str, at, cov, t: float, refs: References, pushed,
+                          lost) -> bool | None: ...
     def moved_to(self, xy, t: float, start=None) -> None: ...
     def pending_travel(self, dac, current, config) -> list: ...
     def predicted(self, t0: float, pending=()): ...
@@ -116,8 +118,12 @@ class NoDrift:
         return None
 
     def measure(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
-        """Fold a measured position (scanner frame) in: None (not used), True, or False
-        (gated out)."""
+        """Fold any located object's measured position (scanner frame) in: None (not
+        used), True, or False (gated out)."""
+        return None
+
+    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+        """Fold the measured position of the reference :meth:`reference_target` chose."""
         return None
 
     def moved_to(self, xy, t: float, start=None) -> None:
@@ -165,7 +171,9 @@ class Anchor(NoDrift):
     def reference_target(self, t, near, obj_id, belief, refs, pushed, moving, options) -> str | None:
         return None if self.anchor is None else self.anchor[0]
 
-    def measure(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+        """The anchor found at ``at``: the offset. (Only the anchor's own reference scan
+        measures; an object located before its push does not, even if it is the anchor.)"""
         if self.anchor is None or obj_id != self.anchor[0]:
             return None
         self.drift = np.asarray(at) - self.origin - np.asarray(self.anchor[1])
@@ -299,6 +307,9 @@ class Kalman:
         if not m.accepted:
             refs.gated.add(obj_id)
         return bool(m.accepted)
+
+    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+        return self.measure(obj_id, at, cov, t, refs, pushed, lost)
 
     # -- creep ----------------------------------------------------------------------------
     def moved_to(self, xy, t: float, start=None) -> None:

@@ -71,9 +71,10 @@ def test_the_anchor_gives_the_offset_where_it_is_found_less_where_it_was():
     est.after_plan(Plan("x", (), (op,), ()), belief, (4000.0, 4000.0))
     assert est.anchor[0] == "near"                               # unmoved, nearest the centre
     assert est.reference_target(0.0, (0, 0), "mover", belief, References(), [], set(), OPTS) == "near"
-    assert est.measure("near", (2100.0 + 10 + 7, 2000.0 + 20 - 3), np.eye(2), 9.0, References(), [], set())
+    assert est.measure("near", (0.0, 0.0), np.eye(2), 9.0, References(), [], set()) is None   # only its own scan
+    assert est.measure_reference("near", (2100.0 + 10 + 7, 2000.0 + 20 - 3), np.eye(2), 9.0, References(), [], set())
     assert est.offset(9.0) == pytest.approx([10.0 + 7, 20.0 - 3])
-    assert est.measure("far", (0.0, 0.0), np.eye(2), 9.0, References(), [], set()) is None
+    assert est.measure_reference("far", (0.0, 0.0), np.eye(2), 9.0, References(), [], set()) is None
     back = estimator_from_state(est.state_dict(), OPTS)
     assert type(back) is Anchor and back.anchor == est.anchor
     assert back.offset(9.0) == pytest.approx(est.offset(9.0))
