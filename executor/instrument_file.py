@@ -35,8 +35,9 @@ from dataclasses import dataclass
 from nanoasm.errors import InputError
 from nanoasm.fileio import read_document
 from nanoasm.instrument import InstrumentConfig
+from nanoasm.param import ParamError, param, validate
 from nanoasm.schema import Table, check_format
-from nanoasm.world.param_spec import ParamError, from_table, param, validate
+from nanoasm.world.param_spec import from_table
 
 FORMAT = "nanoasm.instrument/1"
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import InputError
+from .param import type_name
 
 #: Largest document we read; layouts and scenes are far smaller.
 MAX_BYTES = 64 * 1024 * 1024
@@ -110,25 +111,6 @@ def read_document(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise InputError(src, None, f"top level must be a table/object, got {type_name(data)}")
     return data
-
-
-def type_name(value: Any) -> str:
-    """A user-facing name for the type of a parsed TOML/JSON value."""
-    if value is None:
-        return "null"
-    if isinstance(value, bool):
-        return "a boolean"
-    if isinstance(value, int):
-        return "an integer"
-    if isinstance(value, float):
-        return "a number"
-    if isinstance(value, str):
-        return "a string"
-    if isinstance(value, (list, tuple)):
-        return "an array"
-    if isinstance(value, dict):
-        return "a table"
-    return type(value).__name__
 
 
 def _umask() -> int:

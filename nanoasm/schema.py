@@ -13,64 +13,19 @@ Array indices in key paths count from 1, as a person counts ``[[target]]`` block
 from __future__ import annotations
 
 import difflib
-import math
 from collections.abc import Iterable, Mapping
 from typing import Any
 
 from .errors import InputError
-from .fileio import type_name
+from .param import check_number, show_value, type_name
 
 _MISSING: Any = object()
 
 Point = tuple[float, float]
 
 
-def _show(value: Any) -> str:
-    if isinstance(value, str):
-        text = value if len(value) <= 40 else value[:37] + "..."
-        return repr(text)
-    if isinstance(value, float):
-        return repr(value)
-    if isinstance(value, (list, dict)):
-        return type_name(value)
-    return str(value)
-
-
 def _entries(value: list) -> str:
     return f"{len(value)} entry" if len(value) == 1 else f"{len(value)} entries"
-
-
-def check_number(
-    value: Any,
-    fail,
-    *,
-    positive: bool = False,
-    nonnegative: bool = False,
-    lo: float | None = None,
-    hi: float | None = None,
-    integer: bool = False,
-) -> float | int:
-    """Check one scalar; ``fail(problem)`` raises the caller's located error."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        want = "an integer" if integer else "a number"
-        fail(f"must be {want}, got {type_name(value)} {_show(value)}".rstrip())
-    if integer and not isinstance(value, int):
-        fail(f"must be an integer, got {_show(value)}")
-    if isinstance(value, int) and not integer and abs(value) > 2**1023:
-        fail(f"must be finite, got a number too large for a float ({str(value)[:12]}...)")
-    if integer and abs(value) >= 2**63:
-        fail("must be an integer below 2**63")
-    if not math.isfinite(value):
-        fail(f"must be finite, got {_show(value)}")
-    if positive and not value > 0:
-        fail(f"must be positive, got {_show(value)}")
-    if nonnegative and value < 0:
-        fail(f"must not be negative, got {_show(value)}")
-    if lo is not None and value < lo:
-        fail(f"must be at least {lo:g}, got {_show(value)}")
-    if hi is not None and value > hi:
-        fail(f"must be at most {hi:g}, got {_show(value)}")
-    return value if integer else float(value)
 
 
 class Table:
@@ -139,7 +94,7 @@ class Table:
             return default
         value = self.data[name]
         if not isinstance(value, str):
-            self.fail(name, f"must be a string, got {type_name(value)} {_show(value)}".rstrip())
+            self.fail(name, f"must be a string, got {type_name(value)} {show_value(value)}".rstrip())
         if not value.strip():
             self.fail(name, "must not be empty")
         if any(ord(c) < 32 or ord(c) == 127 for c in value):
@@ -147,7 +102,7 @@ class Table:
         if choices is not None:
             choices = list(choices)
             if value not in choices:
-                self.fail(name, f"must be one of {', '.join(map(repr, choices))}, got {_show(value)}")
+                self.fail(name, f"must be one of {', '.join(map(repr, choices))}, got {show_value(value)}")
         return value
 
     def boolean(self, name: str, default: Any = _MISSING) -> bool:
@@ -157,7 +112,7 @@ class Table:
             return default
         value = self.data[name]
         if not isinstance(value, bool):
-            self.fail(name, f"must be true or false, got {type_name(value)} {_show(value)}".rstrip())
+            self.fail(name, f"must be true or false, got {type_name(value)} {show_value(value)}".rstrip())
         return value
 
     def is_null(self, name: str) -> bool:
@@ -172,7 +127,7 @@ class Table:
             return default
         value = self.data[name]
         if not isinstance(value, list):
-            self.fail(name, f"must be an array, got {type_name(value)} {_show(value)}".rstrip())
+            self.fail(name, f"must be an array, got {type_name(value)} {show_value(value)}".rstrip())
         if len(value) < min_len:
             self.fail(name, f"must have at least {min_len} entries, got {_entries(value)}")
         if max_len is not None and len(value) > max_len:
@@ -188,7 +143,7 @@ class Table:
             return default
         value = self.data[name]
         if not isinstance(value, list) or len(value) != 2:
-            got = _entries(value) if isinstance(value, list) else f"{type_name(value)} {_show(value)}"
+            got = _entries(value) if isinstance(value, list) else f"{type_name(value)} {show_value(value)}"
             self.fail(name, f"must be an array of two numbers [{names[0]}, {names[1]}], got {got}".rstrip())
         return tuple(
             check_number(v, lambda p, c=c: self.fail(name, f"{c} {p}"), **limits)
@@ -202,7 +157,7 @@ class Table:
         for i, v in enumerate(value, start=1):
             key = f"{name}[{i}]"
             if not isinstance(v, list) or len(v) != 2:
-                got = _entries(v) if isinstance(v, list) else f"{type_name(v)} {_show(v)}"
+                got = _entries(v) if isinstance(v, list) else f"{type_name(v)} {show_value(v)}"
                 self.fail(key, f"must be a point [x, y], got {got}".rstrip())
             out.append(tuple(check_number(c, lambda p, ax=ax, key=key: self.fail(key, f"{ax} {p}"))
                              for c, ax in zip(v, "xy")))
@@ -224,7 +179,7 @@ class Table:
         if isinstance(value, Mapping):
             self.fail(name, f"must be an array of tables (write [[{name}]]), got a single table")
         if not isinstance(value, list):
-            self.fail(name, f"must be an array of tables, got {type_name(value)} {_show(value)}".rstrip())
+            self.fail(name, f"must be an array of tables, got {type_name(value)} {show_value(value)}".rstrip())
         return [Table(v, self.source, f"{self.key(name)}[{i}]") for i, v in enumerate(value, start=1)]
 
 
@@ -242,4 +197,4 @@ def check_format(doc: Mapping[str, Any], source: str | None, expected: str) -> N
         raise InputError(source, "format", f"unsupported version {value!r} (this nanoasm reads {expected!r})")
     if value.startswith("nanoasm."):
         raise InputError(source, "format", f"this is a {value!r} file, expected {expected!r}")
-    raise InputError(source, "format", f"unknown format {_show(value)} (expected {expected!r})")
+    raise InputError(source, "format", f"unknown format {show_value(value)} (expected {expected!r})")

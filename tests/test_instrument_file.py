@@ -12,7 +12,7 @@ from nanoasm.errors import InputError
 from nanoasm.examples import path as example_path
 from nanoasm.executor.instrument_file import SCANNER_REQUIRED, DaqConfig, InstrumentFile, load_instrument_config
 from nanoasm.fileio import dumps_toml
-from nanoasm.world.param_spec import ParamError
+from nanoasm.param import ParamError
 
 EXAMPLE = example_path("instrument_ni.toml")
 

@@ -18,7 +18,7 @@ from nanoasm.instrument import (
     check_samples,
     ramp,
 )
-from nanoasm.world.param_spec import ParamError
+from nanoasm.param import ParamError
 
 CFG = InstrumentConfig()
 

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from nanoasm.errors import InputError
 from nanoasm.schema import Table
-from nanoasm.world.param_spec import ParamError
+from nanoasm.param import ParamError
 from nanoasm.world.params import (
     TABLES,
     CantileverParams,

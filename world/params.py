@@ -18,9 +18,10 @@ from dataclasses import dataclass, field
 
 from nanoasm.errors import InputError
 from nanoasm.instrument import InstrumentConfig
+from nanoasm.param import ParamError, param, validate
 from nanoasm.schema import Table
 
-from .param_spec import ParamError, from_table, markdown_rows, param, to_table, validate
+from .param_spec import from_table, markdown_rows, to_table
 
 
 @dataclass(frozen=True)

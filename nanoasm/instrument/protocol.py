@@ -23,7 +23,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from nanoasm.errors import InstrumentLimitError
-from nanoasm.world.param_spec import ParamError, param, validate
+from nanoasm.param import ParamError, param, validate
 
 from .heightmap import HeightImage
 
