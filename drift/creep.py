@@ -17,10 +17,11 @@ the move, so the input stays continuous and the list stays short.
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass
 
 import numpy as np
+
+from nanoasm.param import param, validate
 
 
 @dataclass(frozen=True)
@@ -47,24 +48,17 @@ class CreepModelParams:
         measurement out when ``c`` is off. 0 treats the input as exact.
     """
 
-    amplitude: float = 0.01
-    tau: float = 0.1
-    min_step: float = 500.0
-    rate_tol: float = 1e-3
-    max_moves: int = 256
-    amplitude_std: float = 0.0
+    amplitude: float = param(0.01, "1/decade", "creep per decade of time, fraction of the step",
+                             nonnegative=True)
+    tau: float = param(0.1, "s", "creep time constant", positive=True)
+    min_step: float = param(500.0, "nm", "shorter moves add no creep term", nonnegative=True)
+    rate_tol: float = param(1e-3, "nm/s", "a move creeping slower than this is frozen", positive=True)
+    max_moves: int = param(256, "-", "most moves kept", lo=1)
+    amplitude_std: float = param(0.0, "1/decade", "standard deviation of the amplitude",
+                                 nonnegative=True)
 
     def __post_init__(self) -> None:
-        for name, lo, strict in (("amplitude", 0.0, False), ("tau", 0.0, True),
-                                 ("min_step", 0.0, False), ("rate_tol", 0.0, True),
-                                 ("amplitude_std", 0.0, False)):
-            value = getattr(self, name)
-            if not (isinstance(value, numbers.Real) and math.isfinite(value)
-                    and (value > lo if strict else value >= lo)):
-                raise ValueError(f"{name} must be a finite number, "
-                                 f"{'positive' if strict else 'not negative'}; got {value!r}")
-        if not isinstance(self.max_moves, numbers.Integral) or self.max_moves < 1:
-            raise ValueError(f"max_moves must be a positive integer, got {self.max_moves!r}")
+        validate(self)
 
 
 def creep_offset(t: float, move_times: np.ndarray, move_steps: np.ndarray,

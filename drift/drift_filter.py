@@ -10,11 +10,12 @@ exact for clocks around 10⁷ s. Offsets are in nm, in the sense of
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
+
+from nanoasm.param import ParamError, number, param, validate
 
 from .creep import CreepHistory, CreepModelParams
 from .gating import (
@@ -27,19 +28,6 @@ from .gating import (
 from .kalman import H_OFFSET, STATE_DIM, _check_state, process_noise_sqrt, symmetrize
 from .records import HistoryEntry, JointMeasurement, Measurement, OffsetEstimate
 from .square_root import predict_sqrt, psd_sqrt, tria, update_sqrt
-
-
-def _finite(name: str, value, *, positive: bool = False, nonnegative: bool = False) -> None:
-    """Raise ``ValueError`` naming ``name`` unless ``value`` is a finite real number
-    (and positive, or not negative, when asked)."""
-    ok = isinstance(value, numbers.Real) and math.isfinite(value)
-    if ok and positive:
-        ok = value > 0
-    if ok and nonnegative:
-        ok = value >= 0
-    if not ok:
-        need = ", positive" if positive else ", not negative" if nonnegative else ""
-        raise ValueError(f"{name} must be a finite number{need}; got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -73,27 +61,23 @@ class DriftFilterParams:
         The creep input.
     """
 
-    q: float = 1e-6
-    q_offset: float = 0.0
-    offset_std: float = 10.0
-    velocity_std: float = 0.5
-    measurement_std: float = 2.0
-    gate_probability: float = 0.997
-    min_consensus: int = 2
-    time_tolerance: float = 1e-6
+    q: float = param(1e-6, "nm²/s³", "velocity random-walk intensity", nonnegative=True)
+    q_offset: float = param(0.0, "nm²/s", "white-noise intensity on the offset", nonnegative=True)
+    offset_std: float = param(10.0, "nm", "prior standard deviation of the offset", positive=True)
+    velocity_std: float = param(0.5, "nm/s", "prior standard deviation of the drift velocity", positive=True)
+    measurement_std: float = param(2.0, "nm", "default standard deviation of a measured offset per axis",
+                                   positive=True)
+    gate_probability: float = param(0.997, "-", "χ² gate probability, in (0, 1)", positive=True)
+    min_consensus: int = param(2, "-", "objects that must agree to read a drift jump (0: never)",
+                               nonnegative=True)
+    time_tolerance: float = param(1e-6, "s", "a time this much before the filter's counts as the same",
+                                  nonnegative=True)
     creep: CreepModelParams = field(default_factory=CreepModelParams)
 
     def __post_init__(self) -> None:
-        _finite("q", self.q, nonnegative=True)
-        _finite("q_offset", self.q_offset, nonnegative=True)
-        for name in ("offset_std", "velocity_std", "measurement_std"):
-            _finite(name, getattr(self, name), positive=True)
-        _finite("time_tolerance", self.time_tolerance, nonnegative=True)
-        _finite("gate_probability", self.gate_probability)
-        if not 0.0 < self.gate_probability < 1.0:
-            raise ValueError(f"gate_probability must lie in (0, 1), got {self.gate_probability!r}")
-        if not isinstance(self.min_consensus, numbers.Integral) or self.min_consensus < 0:
-            raise ValueError(f"min_consensus must be a non-negative integer, got {self.min_consensus!r}")
+        validate(self)
+        if not self.gate_probability < 1.0:
+            raise ParamError("gate_probability", f"must be below 1, got {self.gate_probability!r}")
         if not isinstance(self.creep, CreepModelParams):
             raise TypeError(f"creep must be a CreepModelParams, got {type(self.creep).__name__}")
 
@@ -119,7 +103,7 @@ class DriftFilter:
     def __init__(self, params: DriftFilterParams | None = None, *, epoch: float = 0.0,
                  x0: np.ndarray | None = None, P0: np.ndarray | None = None):
         self.params = params if params is not None else DriftFilterParams()
-        _finite("epoch", epoch)
+        number("epoch", epoch)
         p = self.params
         self.epoch = float(epoch)
         self._tau = 0.0
@@ -156,7 +140,7 @@ class DriftFilter:
         """A filter that goes on from :meth:`state_dict`'s estimate."""
         f = cls(params, epoch=float(state["epoch"]))
         tau = float(state["tau"])
-        _finite("tau", tau)
+        number("tau", tau)
         x, L = _check_state(state["x"], state["L"])      # the factor L checked as P would be
         for t, step in zip(state["creep"]["times"], state["creep"]["steps"]):
             f.creep.record(float(t), step)
@@ -189,7 +173,7 @@ class DriftFilter:
 
     def _relative(self, t: float) -> tuple[float, float]:
         """``(tau, dt)``: ``t`` relative to the epoch, and the step from the filter time."""
-        _finite("t", t)
+        number("t", t)
         tau = float(t) - self.epoch
         dt = tau - self._tau
         if dt < -self.params.time_tolerance:
@@ -255,15 +239,15 @@ class DriftFilter:
     def r_max(self, t: float, k: float = 3.0) -> float:
         """Largest expected drift error radius (nm) at ``t``: ``k √λ_max`` of the offset
         covariance. The executor sizes local scan lines with it (``l > R + r_max``)."""
-        _finite("k", k, nonnegative=True)
+        number("k", k, nonnegative=True)
         cov = self.offset(t).cov
         return float(k * math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
 
     def inflate(self, offset_std: float = 0.0, velocity_std: float = 0.0) -> None:
         """Add independent uncertainty (nm, nm/s) to the current estimate, e.g. after
         the executor decides the drift jumped (several lone measurements gated out)."""
-        _finite("offset_std", offset_std, nonnegative=True)
-        _finite("velocity_std", velocity_std, nonnegative=True)
+        number("offset_std", offset_std, nonnegative=True)
+        number("velocity_std", velocity_std, nonnegative=True)
         extra = np.diag([offset_std] * 2 + [velocity_std] * 2)
         L = tria(np.hstack([self._L, extra]))
         self._commit(self._tau, 0.0, self._x, L, self._x, L, extra, "inflate")
