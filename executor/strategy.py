@@ -14,8 +14,9 @@ anchor         yes           no            yes             no           one fixe
 from __future__ import annotations
 
 import enum
-import math
 from dataclasses import dataclass
+
+from nanoasm.param import param, validate
 
 
 class Strategy(str, enum.Enum):
@@ -97,36 +98,32 @@ class ExecOptions:
         Lateral force, nN, beyond which a push is stopped as stuck.
     """
 
-    strategy: Strategy = Strategy.FULL
-    pixel_size: float = 10.0
-    r_max: float = 150.0
-    max_drift_rate: float = 0.5
-    r_max_floor: float = 15.0
-    line_factor: float = 1.0
-    scan_spacing: float | None = None
-    reference_every: float = 120.0
-    drift_q: float = 1e-6
-    drift_q_offset: float = 0.1
-    max_corrections: int = 2
-    max_failures: int = 3
-    replan_after: float = 60.0
-    lost_radius: float = 1500.0
-    push_speed: float | None = 200.0
-    chunk: int = 4096
-    force_limit: float = 300.0
+    strategy: Strategy = param(Strategy.FULL, "", "execution strategy")
+    pixel_size: float = param(10.0, "nm", "pixel of the first full scan", positive=True)
+    r_max: float = param(150.0, "nm", "largest expected position error without a drift filter",
+                         positive=True)
+    max_drift_rate: float = param(0.5, "nm/s", "fastest drift assumed without a drift filter",
+                                  positive=True)
+    r_max_floor: float = param(15.0, "nm", "least r_max used", positive=True)
+    line_factor: float = param(1.0, "-", "multiplies the r_max that sets local-scan line lengths",
+                               positive=True)
+    scan_spacing: float | None = param(None, "nm", "distance between the samples of a local-scan line "
+                                       "(None: min(1, R / 10))", optional=True, positive=True)
+    reference_every: float = param(120.0, "s", "largest age of the last drift reference before a push",
+                                   positive=True)
+    drift_q: float = param(1e-6, "nm²/s³", "random walk of the drift velocity", nonnegative=True)
+    drift_q_offset: float = param(0.1, "nm²/s", "white noise on the drift offset", nonnegative=True)
+    max_corrections: int = param(2, "-", "extra pushes to bring an object into its slot", nonnegative=True)
+    max_failures: int = param(3, "-", "failed or off-course pushes of one object before it is left",
+                              lo=1)
+    replan_after: float = param(60.0, "nm", "deviation from the planned course that replans (full)",
+                                positive=True)
+    lost_radius: float = param(1500.0, "nm", "half-size of the search for a lost object", positive=True)
+    push_speed: float | None = param(200.0, "nm/s", "tip speed while pushing (None: the scanner's limit)",
+                                     optional=True, positive=True)
+    chunk: int = param(4096, "-", "DAC samples per streamed chunk", lo=16)
+    force_limit: float = param(300.0, "nN", "lateral force beyond which a push is stopped as stuck",
+                               positive=True)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "strategy", Strategy(self.strategy))
-        for name in ("pixel_size", "r_max", "max_drift_rate", "r_max_floor", "line_factor", "reference_every",
-                     "lost_radius", "force_limit", "replan_after", "scan_spacing", "push_speed"):
-            v = getattr(self, name)
-            if v is None and name in ("scan_spacing", "push_speed"):      # None: the default rule
-                continue
-            if not (math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be positive and finite, got {v!r}")
-        for name in ("drift_q", "drift_q_offset"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"{name} must be finite and >= 0, got {v!r}")
-        if self.max_corrections < 0 or self.chunk < 16 or self.max_failures < 1:
-            raise ValueError("max_corrections must be >= 0, max_failures >= 1 and chunk >= 16")
+        validate(self)

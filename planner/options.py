@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+
+from nanoasm.param import param, validate
 
 #: OMPL planners by the names the CLI accepts.
 PLANNERS = ("rrtconnect", "rrt", "rrtstar", "informedrrtstar", "bitstar", "prm", "prmstar",
@@ -44,32 +45,22 @@ class PlanOptions:
         well away from the bifurcation at L/2 (seed eq. 4.10).
     """
 
-    tip_radius: float = 10.0
-    margin: float = 20.0
-    lead: float = 20.0
-    planner: str = "rrtconnect"
-    budget: float = 1.0
-    rod_limit: float = 15.0
-    min_confidence: float = 0.5
-    seed: int = 0
-    rod_swing: float = 20.0
-    rod_push_point: float = 0.1
+    tip_radius: float = param(10.0, "nm", "AFM tip radius", positive=True)
+    margin: float = param(20.0, "nm", "extra clearance of every path", nonnegative=True)
+    lead: float = param(20.0, "nm", "the tip is put down this far short of contact", nonnegative=True)
+    planner: str = param("rrtconnect", "", "OMPL planner for paths a straight line cannot take",
+                         choices=PLANNERS)
+    budget: float = param(1.0, "-", "planning effort for one path, counted in work", positive=True)
+    rod_limit: float = param(15.0, "-", "largest aspect ratio L/d pushed as a rigid rod", positive=True)
+    min_confidence: float = param(0.5, "-", "objects identified with less confidence are never assigned",
+                                  lo=0.0, hi=1.0)
+    seed: int = param(0, "-", "seed of OMPL's sampler", nonnegative=True)
+    rod_swing: float = param(20.0, "deg", "largest rotation of one rod push", positive=True, hi=60.0)
+    rod_push_point: float = param(0.1, "-", "push point of rod pushes, fraction of the length from the "
+                                  "pushed end", lo=0.0, hi=0.3)
 
     def __post_init__(self) -> None:
-        for name in ("tip_radius", "margin", "lead", "budget", "rod_limit", "rod_swing"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v > 0) and not (name in ("margin", "lead") and v == 0):
-                raise ValueError(f"{name} must be positive and finite, got {v!r}")
-        if self.planner not in PLANNERS:
-            raise ValueError(f"planner must be one of {', '.join(PLANNERS)}, got {self.planner!r}")
-        if not 0.0 <= self.min_confidence <= 1.0:
-            raise ValueError(f"min_confidence must be in [0, 1], got {self.min_confidence!r}")
-        if not 0.0 <= self.rod_push_point <= 0.3:
-            raise ValueError(f"rod_push_point must be in [0, 0.3], got {self.rod_push_point!r}")
-        if not 0.0 < self.rod_swing <= 60.0:
-            raise ValueError(f"rod_swing must be in (0, 60], got {self.rod_swing!r}")
-        if self.seed < 0:
-            raise ValueError(f"seed must not be negative, got {self.seed!r}")
+        validate(self)
 
     @property
     def clearance(self) -> float:

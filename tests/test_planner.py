@@ -203,7 +203,7 @@ def test_replanning_is_cheap_when_nothing_moved_and_replans_when_something_did()
 
 
 def test_planner_names_are_checked():
-    with pytest.raises(ValueError, match="planner must be one of"):
+    with pytest.raises(ValueError, match="planner: must be one of"):
         PlanOptions(planner="astar")
 
 

@@ -113,7 +113,7 @@ def test_grid_varies_one_knob_at_a_time():
     (dict(family="tiny", seed=-1), "seed must not be negative"),
     (dict(family="tiny", seed=1, knobs=(("speed", 1.0),)), "unknown knob 'speed'; one of pixel_size"),
     (dict(family="tiny", seed=1, knobs=(("line_factor", 1.0), ("line_factor", 2.0))), "given twice"),
-    (dict(family="tiny", seed=1, knobs=(("line_factor", -1.0),)), "line_factor must be positive"),
+    (dict(family="tiny", seed=1, knobs=(("line_factor", -1.0),)), "line_factor: must be positive"),
 ])
 def test_bad_cases_are_refused(kwargs, match):
     with pytest.raises(ValueError, match=match):
