@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nanoasm.param import number
+
 #: Largest height magnitude accepted in a profile (nm); larger is not a height.
 MAX_HEIGHT = 1e9
 #: A bump that dips between two summits by more than this fraction of the object's
@@ -103,13 +105,6 @@ def _check_profile(profile) -> np.ndarray:
     return z
 
 
-def _positive(name: str, value: float) -> float:
-    if not (isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
-            and value > 0):
-        raise ValueError(f"{name} must be positive and finite, got {value!r}")
-    return float(value)
-
-
 def _dilate(mask: np.ndarray, k: int) -> np.ndarray:
     if k <= 0 or not mask.any():
         return mask
@@ -152,8 +147,8 @@ def fit_baseline(profile, spacing: float, height: float, *, band: float = 0.15,
         Robust rms of the substrate samples about the baseline (nm).
     """
     z = _check_profile(profile)
-    spacing = _positive("spacing", spacing)
-    height = _positive("height", height)
+    spacing = number("spacing", spacing, positive=True)
+    height = number("height", height, positive=True)
     if not 0 < band < 1:
         raise ValueError(f"band must be in (0, 1), got {band}")
     n = z.size
@@ -276,16 +271,13 @@ def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
         bump has both crossings on the line.
     """
     z = _check_profile(profile)
-    length = _positive("length", length)
-    height = _positive("height", height)
+    length = number("length", length, positive=True)
+    height = number("height", height, positive=True)
     if not 0 < fraction < 1:
         raise ValueError(f"fraction must be in (0, 1), got {fraction}")
-    if expected is None:
-        expected = 0.5 * length
-    elif not math.isfinite(expected):
-        raise ValueError(f"expected must be finite, got {expected}")
-    if noise_rms is not None and not (math.isfinite(noise_rms) and noise_rms >= 0):
-        raise ValueError(f"noise_rms must be non-negative and finite, got {noise_rms}")
+    expected = 0.5 * length if expected is None else number("expected", expected)
+    if noise_rms is not None:
+        number("noise_rms", noise_rms, nonnegative=True)
     n = z.size
     h = length / (n - 1)
     base, est = fit_baseline(z, h, height, band=min(0.15, 0.5 * fraction))

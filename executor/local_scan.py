@@ -30,11 +30,13 @@ from collections.abc import Generator
 
 import numpy as np
 
+from nanoasm.param import number
+
 from .edges import TOUCHING
 from .rod_scan import rod_after, rod_before
 from .scan_lines import (AXIS_PEAK, DEFAULT_OPTIONS, LineOutcome, LocalScanResult, ScanLine,
-                         ScanOptions, _finite, frame_cov, line_length, make_line, measure_line,
-                         missed, perp, point, run_pattern, step_offsets, unit)
+                         ScanOptions, frame_cov, line_length, make_line, measure_line, missed, perp,
+                         point, run_pattern, step_offsets, unit)
 
 Pattern = Generator[ScanLine, np.ndarray, LocalScanResult]
 
@@ -71,8 +73,8 @@ def particle_before(centre, diameter: float, r_max: float, *, direction=(1.0, 0.
     options : ScanOptions
     """
     o = point("centre", centre)
-    d = _finite("diameter", diameter, positive=True)
-    r_max = _finite("r_max", r_max, nonnegative=True)
+    d = number("diameter", diameter, positive=True)
+    r_max = number("r_max", r_max, nonnegative=True)
     u = unit("direction", direction)
     opts = options.resolved(d)
     reach = d / 2 + r_max + opts.margin
@@ -102,10 +104,10 @@ def particle_after(start, diameter: float, push_direction, push_length: float, r
     options : ScanOptions
     """
     o = point("start", start)
-    d = _finite("diameter", diameter, positive=True)
+    d = number("diameter", diameter, positive=True)
     u = unit("push_direction", push_direction)
-    delta = _finite("push_length", push_length, nonnegative=True)
-    r_max = _finite("r_max", r_max, nonnegative=True)
+    delta = number("push_length", push_length, nonnegative=True)
+    r_max = number("r_max", r_max, nonnegative=True)
     opts = options.resolved(d)
     reach = d / 2 + r_max + opts.margin
     return _particle("particle_after", o, u, -reach, delta + reach, delta, d, r_max, opts, "'")

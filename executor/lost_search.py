@@ -19,9 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nanoasm.param import number
+
 from .local_scan import centre_from_hit
 from .scan_lines import (DEFAULT_OPTIONS, LineOutcome, LocalScanResult, ScanLine, ScanOptions,
-                         _Accounting, _finite, make_line, measure_line, missed, perp, point, unit)
+                         _Accounting, make_line, measure_line, missed, perp, point, unit)
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,13 +85,12 @@ def raster_segments(diameter: float, radius: float, start: float, margin: float
 
 def _args(last_known, diameter, radius, direction, start, spacing, options):
     o = point("last_known", last_known)
-    d = _finite("diameter", diameter, positive=True)
-    radius = _finite("radius", radius, nonnegative=True)
+    d = number("diameter", diameter, positive=True)
+    radius = number("radius", radius, nonnegative=True)
     u = unit("direction", direction)
-    start = 2 * d if start is None else _finite("start", start, positive=True)
+    start = 2 * d if start is None else number("start", start, positive=True)
     opts = options.resolved(d)
-    spacing = max(opts.spacing, d / 8) if spacing is None else _finite("spacing", spacing,
-                                                                         positive=True)
+    spacing = max(opts.spacing, d / 8) if spacing is None else number("spacing", spacing, positive=True)
     return o, d, radius, u, start, spacing, opts
 
 

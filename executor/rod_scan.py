@@ -6,7 +6,7 @@ return a :class:`~nanoasm.executor.scan_lines.LocalScanResult` with centre, angl
 length.
 
 Every edge crossing lies on the rod's outline at the edge level (a capsule around the
-rod's core, :func:`~nanoasm.executor.scan_lines.fit_capsule`), so the pose comes from a
+rod's core, :func:`~nanoasm.executor.capsule_fit.fit_capsule`), so the pose comes from a
 least-squares fit of that outline to all the crossings of the pattern. For lines at
 right angles to the rod this is the seed's midpoint rule; for the oblique lines after a
 push it is not misled by a line through a rounded end; and it measures the tip's
@@ -23,9 +23,12 @@ from collections.abc import Generator
 
 import numpy as np
 
+from nanoasm.param import number
+
+from .capsule_fit import fit_capsule, near_angle
 from .scan_lines import (AXIS_PEAK, DEFAULT_OPTIONS, LineOutcome, LocalScanResult, ScanLine,
-                         ScanOptions, _finite, axis, fit_capsule, make_line, measure_line, missed,
-                         near_angle, perp, point, step_offsets, unit, wedge)
+                         ScanOptions, axis, make_line, measure_line, missed, perp, point, step_offsets,
+                         unit, wedge)
 
 Pattern = Generator[ScanLine, np.ndarray, LocalScanResult]
 
@@ -35,12 +38,12 @@ MAX_ANGLE_STD = 10.0
 
 def _rod_args(centre, angle, length, diameter, r_max, names=("centre", "angle")):
     c = point(names[0], centre)
-    th = _finite(names[1], angle)
-    d = _finite("diameter", diameter, positive=True)
-    L = _finite("length", length, positive=True)
+    th = number(names[1], angle)
+    d = number("diameter", diameter, positive=True)
+    L = number("length", length, positive=True)
     if L < d:
         raise ValueError(f"length must be at least the diameter ({d:g}), got {L:g}")
-    return c, th, L, d, _finite("r_max", r_max, nonnegative=True)
+    return c, th, L, d, number("r_max", r_max, nonnegative=True)
 
 
 def rod_before(centre, angle: float, length: float, diameter: float, r_max: float, *,
@@ -171,10 +174,10 @@ def rod_after(start, start_angle: float, length: float, diameter: float, push_po
                                      ("start", "start_angle"))
     t = point("push_point", push_point)
     u = unit("push_direction", push_direction)
-    delta = _finite("push_length", push_length, nonnegative=True)
+    delta = number("push_length", push_length, nonnegative=True)
     c1 = c0 + delta * u if predicted is None else point("predicted", predicted)
-    th1 = th0 if predicted_angle is None else _finite("predicted_angle", predicted_angle)
-    min_alpha = _finite("min_alpha", min_alpha, nonnegative=True)
+    th1 = th0 if predicted_angle is None else number("predicted_angle", predicted_angle)
+    min_alpha = number("min_alpha", min_alpha, nonnegative=True)
     if not min_alpha < 90:
         raise ValueError(f"min_alpha must be below 90 degrees, got {min_alpha!r}")
     opts = options.resolved(d)

@@ -1,10 +1,11 @@
-"""Local scan lines: options, requests, results, the seed's line lengths, contour fits.
+"""Local scan lines: options, requests, results, the seed's line lengths.
 
 A local scan pattern (:mod:`nanoasm.executor.local_scan`) asks for :class:`ScanLine`
 requests, one at a time, and gets back a height profile for each; it ends with a
 :class:`LocalScanResult`. This module holds those value types, the line-length
-conditions of the seed (ch. 5) and the least-squares fit of a rod's outline to the edge
-crossings of all its lines. Lengths in nm, angles in degrees.
+conditions of the seed (ch. 5) and the plane geometry the patterns share; the fit of a
+rod's outline to the edge crossings is :mod:`nanoasm.executor.capsule_fit`. Lengths in
+nm, angles in degrees.
 """
 
 from __future__ import annotations
@@ -14,9 +15,9 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from nanoasm.bodies import Body
+from nanoasm.param import ParamError, number, param, validate
 
 from .edges import Edges, find_edges
 
@@ -25,19 +26,6 @@ MIN_SAMPLES = 11
 #: A line whose peak reaches this fraction of the object's height passed close to its
 #: centre (particle) or crossed its axis (rod); a lower one grazed the object's rim.
 AXIS_PEAK = 0.85
-
-
-def _finite(name: str, value, *, positive: bool = False, nonnegative: bool = False) -> float:
-    ok = isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
-    if ok and positive:
-        ok = value > 0
-    if ok and nonnegative:
-        ok = value >= 0
-    if not ok:
-        what = "positive and finite" if positive else "non-negative and finite" if nonnegative \
-            else "finite"
-        raise ValueError(f"{name} must be {what}, got {value!r}")
-    return float(value)
 
 
 def point(name: str, value) -> np.ndarray:
@@ -101,31 +89,28 @@ class ScanOptions:
         the lines did not cross the rod as the pattern assumed.
     """
 
-    spacing: float | None = None
-    margin: float | None = None
-    fraction: float = 0.5
-    height: float | None = None
-    noise_rms: float | None = None
-    max_lines: int = 64
-    length_tolerance: float = 0.2
+    spacing: float | None = param(None, "nm", "distance between samples on a line (None: min(1, R / 10))",
+                                  optional=True, positive=True)
+    margin: float | None = param(None, "nm", "extra line beyond the seed's minimum at each end "
+                                 "(None: d / 2 + 10 spacing)", optional=True, nonnegative=True)
+    fraction: float = param(0.5, "-", "edge level as a fraction of the object's height, in (0, 1)",
+                            positive=True)
+    height: float | None = param(None, "nm", "expected object height (None: its diameter)",
+                                 optional=True, positive=True)
+    noise_rms: float | None = param(None, "nm", "height noise of a line (None: estimated)",
+                                    optional=True, nonnegative=True)
+    max_lines: int = param(64, "-", "most lines one search may use", lo=2)
+    length_tolerance: float = param(0.2, "-", "largest relative misfit of a rod outline's length",
+                                    positive=True)
 
     def __post_init__(self) -> None:
-        for name in ("spacing", "height"):
-            if getattr(self, name) is not None:
-                _finite(name, getattr(self, name), positive=True)
-        for name in ("margin", "noise_rms"):
-            if getattr(self, name) is not None:
-                _finite(name, getattr(self, name), nonnegative=True)
-        if not 0 < self.fraction < 1:
-            raise ValueError(f"fraction must be in (0, 1), got {self.fraction!r}")
-        if not (math.isfinite(self.length_tolerance) and self.length_tolerance > 0):
-            raise ValueError(f"length_tolerance must be positive, got {self.length_tolerance!r}")
-        if not (isinstance(self.max_lines, int) and self.max_lines >= 2):
-            raise ValueError(f"max_lines must be an integer of at least 2, got {self.max_lines!r}")
+        validate(self)
+        if not self.fraction < 1:
+            raise ParamError("fraction", f"must be below 1, got {self.fraction!r}")
 
     def resolved(self, diameter: float) -> ScanOptions:
         """These options with every default filled in for an object of ``diameter``."""
-        d = _finite("diameter", diameter, positive=True)
+        d = number("diameter", diameter, positive=True)
         spacing = self.spacing if self.spacing is not None else min(1.0, d / 20)
         margin = self.margin if self.margin is not None else d / 2 + 10 * spacing
         height = self.height if self.height is not None else d
@@ -166,10 +151,10 @@ def line_length(kind: str, diameter: float, r_max: float, *, push_length: float 
     """
     if kind not in ("particle", "rod"):
         raise ValueError(f"kind must be 'particle' or 'rod', got {kind!r}")
-    d = _finite("diameter", diameter, positive=True)
-    r_max = _finite("r_max", r_max, nonnegative=True)
-    push_length = _finite("push_length", push_length, nonnegative=True)
-    margin = _finite("margin", margin, nonnegative=True)
+    d = number("diameter", diameter, positive=True)
+    r_max = number("r_max", r_max, nonnegative=True)
+    push_length = number("push_length", push_length, nonnegative=True)
+    margin = number("margin", margin, nonnegative=True)
     reach = d / 2 if kind == "particle" else d
     return push_length + 2 * (reach + r_max + margin)
 
@@ -180,8 +165,8 @@ def step_offsets(step: float, limit: float, first: float = 0.0):
 
     Yields floats; ``limit = 0`` yields ``first`` only.
     """
-    step = _finite("step", step, positive=True)
-    limit = _finite("limit", limit, nonnegative=True)
+    step = number("step", step, positive=True)
+    limit = number("limit", limit, nonnegative=True)
     yield first
     k_max = math.ceil(max(limit - step / 2, 0.0) / step - 1e-9)
     for k in range(1, k_max + 1):
@@ -360,101 +345,3 @@ def frame_cov(u: np.ndarray, std_u: float, std_v: float) -> np.ndarray:
     """Covariance (2, 2) with 1-σ ``std_u`` along unit ``u`` and ``std_v`` across it."""
     v = perp(u)
     return std_u ** 2 * np.outer(u, u) + std_v ** 2 * np.outer(v, v)
-
-
-# ---------------------------------------------------------------- rod outline fit
-
-@dataclass(frozen=True, eq=False)
-class CapsuleFit:
-    """A rod outline at the edge level: core segment of half-length ``half`` about
-    ``centre`` at ``angle`` (deg), swept by a disc of radius ``radius``; ``cov`` (5, 5)
-    over (x, y, angle [deg], half, radius), with the angle row zero when it was fixed."""
-
-    centre: np.ndarray
-    angle: float
-    half: float
-    radius: float
-    cov: np.ndarray
-
-
-def _capsule_residuals(params, pts, dirs, stds, angle):
-    if angle is None:
-        cx, cy, th, half, rad = params
-    else:
-        cx, cy, half, rad = params
-        th = angle
-    a = np.array([math.cos(th), math.sin(th)])
-    rel = pts - np.array([cx, cy])
-    t = np.clip(rel @ a, -half, half)
-    near = rel - t[:, None] * a
-    dist = np.hypot(near[:, 0], near[:, 1])
-    normal = near / np.maximum(dist, 1e-12)[:, None]
-    along = np.maximum(np.abs(np.sum(normal * dirs, axis=1)), 0.1)
-    return (dist - rad) / np.maximum(stds * along, 1e-3)
-
-
-def fit_capsule(points, directions, stds, centre, angle: float, half: float, radius: float, *,
-                fix_angle: bool = False) -> CapsuleFit | None:
-    """Least-squares rod outline through edge crossings.
-
-    Every edge crossing of a scan line with a rod lies on the rod's outline at the edge
-    level: the points at one distance ``radius`` (the rod's half-width at that level,
-    tip broadening included) from its core segment. Each crossing is uncertain along its
-    own line, so its residual is weighted by its 1-σ times the cosine between the line
-    and the outline's normal.
-
-    Parameters
-    ----------
-    points : (k, 2) array
-        Crossing points (nm).
-    directions : (k, 2) array
-        Unit directions of the lines they were found on.
-    stds : (k,) array
-        Their 1-σ along those lines (nm).
-    centre, angle, half, radius
-        Starting pose: centre (2,), axis angle (deg), core half-length and outline radius (nm).
-    fix_angle : bool
-        Keep ``angle`` (needs k >= 4); otherwise fit it (k >= 5).
-
-    Returns
-    -------
-    CapsuleFit, or None when the crossings do not determine the outline.
-    """
-    pts = np.asarray(points, float)
-    dirs = np.asarray(directions, float)
-    stds = np.asarray(stds, float)
-    n_par = 4 if fix_angle else 5
-    if pts.shape[0] < n_par:
-        return None
-    th0 = math.radians(angle)
-    x0 = [centre[0], centre[1], *([] if fix_angle else [th0]), max(half, 0.0), max(radius, 1e-3)]
-    lower = [-np.inf, -np.inf, *([] if fix_angle else [-np.inf]), 0.0, 1e-6]
-    fixed = th0 if fix_angle else None
-    sol = least_squares(_capsule_residuals, x0, bounds=(lower, np.inf),
-                        args=(pts, dirs, stds, fixed), x_scale="jac", method="trf")
-    jac = sol.jac
-    sv = np.linalg.svd(jac, compute_uv=False)
-    if not (np.all(np.isfinite(sol.x)) and sv.size == n_par and sv[-1] > 1e-9 * sv[0]):
-        return None
-    try:
-        cov_p = np.linalg.inv(jac.T @ jac)
-    except np.linalg.LinAlgError:     # singular despite the SVD test (rounding)
-        return None
-    if fix_angle:
-        cx, cy, hf, rad = sol.x
-        th = th0
-        cov = np.zeros((5, 5))
-        keep = [0, 1, 3, 4]
-        cov[np.ix_(keep, keep)] = cov_p
-    else:
-        cx, cy, th, hf, rad = sol.x
-        conv = np.diag([1.0, 1.0, math.degrees(1.0), 1.0, 1.0])
-        cov = conv @ cov_p @ conv
-    if not np.all(np.isfinite(cov)):
-        return None
-    return CapsuleFit(np.array([cx, cy]), math.degrees(th), float(hf), float(rad), cov)
-
-
-def near_angle(angle: float, reference: float) -> float:
-    """``angle`` plus a multiple of 180° (a rod is symmetric), within 90° of ``reference``."""
-    return reference + ((angle - reference + 90.0) % 180.0) - 90.0

@@ -13,11 +13,12 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from nanoasm.bodies import Body
+from nanoasm.executor.capsule_fit import fit_capsule
 from nanoasm.executor.edges import find_edges, fit_baseline
 from nanoasm.executor.local_scan import (ScanLine, ScanOptions, line_length, particle_after,
                                          particle_before, rod_after, rod_before, run_pattern)
 from nanoasm.executor.lost_search import find_lost_particle, raster_segments, search_lost
-from nanoasm.executor.scan_lines import axis, fit_capsule, perp, step_offsets
+from nanoasm.executor.scan_lines import axis, perp, step_offsets
 from nanoasm.world.pivot import pivot_position
 from nanoasm.world.render import make_surface, render_line
 from nanoasm.world.tipimage import Tip
