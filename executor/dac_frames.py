@@ -22,18 +22,12 @@ import numpy as np
 
 from nanoasm.errors import InstrumentLimitError
 from nanoasm.instrument import AXES, InstrumentConfig
+from nanoasm.param import number
 from nanoasm.world.cantilever import SEED_LEVER, Cantilever, tip_offset
 
 #: A drift offset: ``None`` (none), a constant ``(dx, dy)`` in nm, or a callable mapping
 #: times ``(n,)`` s to offsets ``(n, 2)`` nm (vectorised; e.g. :class:`LinearDrift`).
 DriftLike = None | tuple[float, float] | Callable[[np.ndarray], np.ndarray]
-
-
-def _finite(name: str, value, *, nonnegative: bool = False) -> float:
-    v = float(value)
-    if not math.isfinite(v) or (nonnegative and v < 0):
-        raise ValueError(f"{name} must be {'non-negative and ' if nonnegative else ''}finite, got {value!r}")
-    return v
 
 
 @dataclass(frozen=True)
@@ -52,8 +46,8 @@ class LinearDrift:
             v = tuple(getattr(self, name))
             if len(v) != 2:
                 raise ValueError(f"{name} must be two numbers (x, y), got {v!r}")
-            object.__setattr__(self, name, tuple(_finite(f"{name}[{i}]", c) for i, c in enumerate(v)))
-        object.__setattr__(self, "t_ref", _finite("t_ref", self.t_ref))
+            object.__setattr__(self, name, tuple(number(f"{name}[{i}]", c) for i, c in enumerate(v)))
+        object.__setattr__(self, "t_ref", number("t_ref", self.t_ref))
 
     def __call__(self, t: np.ndarray) -> np.ndarray:
         """Offsets ``(n, 2)`` nm at times ``t`` ``(n,)`` s."""
@@ -103,8 +97,8 @@ class PushLoad:
     sl_bar: float = 0.0
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "sn_bar", _finite("sn_bar", self.sn_bar))
-        object.__setattr__(self, "sl_bar", _finite("sl_bar", self.sl_bar))
+        object.__setattr__(self, "sn_bar", number("sn_bar", self.sn_bar))
+        object.__setattr__(self, "sl_bar", number("sl_bar", self.sl_bar))
 
     @classmethod
     def from_preload(cls, config: InstrumentConfig, lever: Cantilever = SEED_LEVER,
@@ -122,7 +116,7 @@ def deflection_offset(load: PushLoad, psi_deg: float, lever: Cantilever = SEED_L
     for name, v in (("sn_bar", load.sn_bar), ("sl_bar", load.sl_bar)):
         if abs(v) > lever.full_scale:
             raise ValueError(f"load.{name} = {v:g} V exceeds the detector's ±{lever.full_scale:g} V")
-    return np.asarray(tip_offset(load.sn_bar, load.sl_bar, _finite("psi_deg", psi_deg), lever)[:2], float)
+    return np.asarray(tip_offset(load.sn_bar, load.sl_bar, number("psi_deg", psi_deg), lever)[:2], float)
 
 
 def to_scanner(xy: np.ndarray, offset: np.ndarray) -> np.ndarray:

@@ -28,14 +28,13 @@ manager: every exit parks the tip and closes the tasks::
 
 from __future__ import annotations
 
-import math
-import numbers
 from typing import Self
 
 import numpy as np
 
 from nanoasm.errors import InstrumentLimitError
 from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock
+from nanoasm.param import number
 
 from .feedback_scan import Raster, bin_mean, lift_in_place, park_path, scan_line_plan
 from .instrument_file import InstrumentFile
@@ -207,9 +206,9 @@ class NiDaqInstrument:
         xr, yr = self.config.xy_range
         if region is None:
             return 0.0, 0.0, min(xr, yr)
-        if len(region) != 4 or not all(_finite(v) for v in region):
-            raise ValueError(f"region must be four finite numbers (x0, y0, x1, y1), got {region!r}")
-        x0, y0, x1, y1 = (float(v) for v in region)
+        if len(region) != 4:
+            raise ValueError(f"region must be four numbers (x0, y0, x1, y1), got {region!r}")
+        x0, y0, x1, y1 = (number(f"region[{i}]", v) for i, v in enumerate(region))
         if not (x1 > x0 and y1 > y0):
             raise ValueError(f"region must have x1 > x0 and y1 > y0, got {region!r}")
         side = max(x1 - x0, y1 - y0)
@@ -217,10 +216,6 @@ class NiDaqInstrument:
             raise InstrumentLimitError(f"the {side:g} nm square at ({x0:g}, {y0:g}) leaves the scanner range "
                                        f"[0, {xr:g}] x [0, {yr:g}] nm; nothing sent")
         return x0, y0, side
-
-
-def _finite(v) -> bool:
-    return isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def _count(name: str, n) -> int:
