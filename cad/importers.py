@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, NoReturn
 
 from nanoasm.errors import InputError
+from nanoasm.param import check_number
 
 FORMAT = "nanoasm.layout/1"
 
@@ -85,20 +86,12 @@ def flag(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def _number(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise InputError(None, flag(name), f"must be a number, got {value!r}")
-    if not math.isfinite(value):
-        raise InputError(None, flag(name), f"must be finite, got {value!r}")
-    return float(value)
-
-
 def positive_option(name: str, value: Any) -> float:
     """A positive, finite number option (``scale``, ``rod_diameter``)."""
-    v = _number(name, value)
-    if v <= 0:
-        raise InputError(None, flag(name), f"must be positive, got {v:g}")
-    return v
+    def fail(problem: str) -> NoReturn:
+        raise InputError(None, flag(name), problem)
+
+    return check_number(value, fail, positive=True)
 
 
 def area_option(value: Any) -> Point:
@@ -210,14 +203,12 @@ class LayoutBuilder:
         """Raise the located error for ``key``."""
         raise InputError(self.source, key, problem)
 
-    def _finite(self, key: str, what: str, *values: float) -> None:
-        if not all(math.isfinite(v) for v in values):
-            self.fail(key, f"{what} is not finite")
+    def _check(self, key: str, what: str, *values: float, **limits) -> None:
+        for v in values:
+            check_number(v, lambda problem: self.fail(key, f"{what} {problem}"), **limits)
 
     def _size(self, key: str, what: str, value: float) -> float:
-        self._finite(key, what, value)
-        if value <= 0:
-            self.fail(key, f"{what} must be positive, got {value:g}")
+        self._check(key, what, value, positive=True)
         return rounded(value)
 
     @staticmethod
@@ -226,7 +217,7 @@ class LayoutBuilder:
 
     def particle(self, key: str, at: Point, diameter: float, target_id: str | None = None) -> None:
         """A particle slot centred at ``at`` (nm)."""
-        self._finite(key, "position", *at)
+        self._check(key, "position", *at)
         d = self._size(key, "diameter", diameter)
         self.targets.append(self._with_id(target_id, {
             "kind": "particle", "at": [rounded(at[0]), rounded(at[1])], "diameter": d}))
@@ -235,7 +226,7 @@ class LayoutBuilder:
             target_id: str | None = None) -> None:
         """A rod slot along the segment ``a``-``b`` (nm); ``extension`` is added to its
         length (caps beyond the end points, both ends together)."""
-        self._finite(key, "end point", *a, *b)
+        self._check(key, "end point", *a, *b)
         dx, dy = b[0] - a[0], b[1] - a[1]
         if math.hypot(dx, dy) == 0:
             self.fail(key, "rod has zero length")
@@ -250,7 +241,7 @@ class LayoutBuilder:
         """A keep-out polygon (nm); repeated and closing vertices are dropped."""
         pts = [(rounded(x), rounded(y)) for x, y in points]
         for p in pts:
-            self._finite(key, "keep-out vertex", *p)
+            self._check(key, "keep-out vertex", *p)
         corners = ring(pts, collinear=0.0)
         if len(corners) < 3:
             self.fail(key, f"keep-out outline has {len(corners)} distinct corner(s), needs 3")
@@ -265,7 +256,7 @@ class LayoutBuilder:
 
     def build(self, area: Point, hint: str) -> dict:
         """The layout dict; ``hint`` says which elements make targets in this format."""
-        self._finite("area", "working area", *area)
+        self._check("area", "working area", *area)
         if min(area) <= 0:
             self.fail(None, f"working area must have a positive size, got {area[0]:g} x {area[1]:g} nm")
         if not self.targets:

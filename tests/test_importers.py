@@ -694,7 +694,7 @@ def _dxf_text(tmp_path) -> tuple[str, str]:
     (lambda t: t.replace(" 40\n0.25\n", " 40\nnan\n", 1),
      "CIRCLE {h}: radius must be a positive number, got nan"),
     (lambda t: t.replace(" 20\n1.0\n 30\n0.0\n 40\n", " 20\n1e999\n 30\n0.0\n 40\n", 1),
-     "CIRCLE {h}: position is not finite"),
+     "CIRCLE {h}: position must be finite, got inf"),
 ])
 def test_dxf_bad_files_give_one_line(tmp_path, edit, problem):
     text, handle = _dxf_text(tmp_path)
@@ -764,7 +764,7 @@ def test_import_layout_rejects_options_that_do_not_apply(tmp_path, name, options
     ({"scale": -1}, "--scale: must be positive, got -1"),
     ({"scale": 0}, "--scale: must be positive, got 0"),
     ({"scale": float("nan")}, "--scale: must be finite, got nan"),
-    ({"scale": "2"}, "--scale: must be a number, got '2'"),
+    ({"scale": "2"}, "--scale: must be a number, got a string '2'"),
     ({"keepout_class": " "}, "--keepout-class: must be a non-empty name, got ' '"),
 ])
 def test_option_values_are_checked(tmp_path, options, line):

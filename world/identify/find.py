@@ -16,8 +16,8 @@ corner of pixel (0, 0).
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass, replace
+from typing import NoReturn
 
 import numpy as np
 import shapely
@@ -25,6 +25,7 @@ from scipy import ndimage
 
 from nanoasm.errors import InputError
 from nanoasm.instrument import HeightImage
+from nanoasm.param import check_number
 from nanoasm.world.environment import Environment, EnvObject, EnvObstacle
 from nanoasm.world.tipimage import Tip
 
@@ -55,14 +56,15 @@ class Analysis:
     tolerance: float
 
 
-def _positive(value: float | None, key: str, source: str, allow_zero: bool = False) -> None:
+def _check_option(src: str, key: str, value, **limits) -> None:
+    """An option out of ``limits`` raises InputError naming the image and ``key``; None passes."""
     if value is None:
         return
-    ok = (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
-          and (value >= 0 if allow_zero else value > 0))
-    if not ok:
-        need = "non-negative" if allow_zero else "positive"
-        raise InputError(source, key, f"must be a {need} number, got {value!r}")
+
+    def fail(problem: str) -> NoReturn:
+        raise InputError(src, key, problem)
+
+    check_number(value, fail, **limits)
 
 
 def identify(image: HeightImage, *, cut: float | None = None, min_area: float | None = None,
@@ -114,15 +116,14 @@ def analyse(image: HeightImage, *, cut: float | None = None, min_area: float | N
             line_order: int = 0) -> Analysis:
     """:func:`identify`, returning the intermediate results too."""
     src = image.source or "image"
-    _positive(cut, "cut", src)
-    _positive(min_area, "min_area", src, allow_zero=True)
-    _positive(min_height, "min_height", src, allow_zero=True)
-    _positive(pixel_size, "pixel_size", src)
-    _positive(tip_radius, "tip_radius", src)
+    _check_option(src, "cut", cut, positive=True)
+    _check_option(src, "min_area", min_area, nonnegative=True)
+    _check_option(src, "min_height", min_height, nonnegative=True)
+    _check_option(src, "pixel_size", pixel_size, positive=True)
+    _check_option(src, "tip_radius", tip_radius, positive=True)
     if not (isinstance(tip_half_angle, (int, float)) and 0 < tip_half_angle < 90):
         raise InputError(src, "tip_half_angle", f"must be in (0, 90) degrees, got {tip_half_angle!r}")
-    if not (isinstance(rod_limit, (int, float)) and math.isfinite(rod_limit) and rod_limit >= 1):
-        raise InputError(src, "rod_limit", f"must be at least 1, got {rod_limit!r}")
+    _check_option(src, "rod_limit", rod_limit, lo=1)
     if plane_order not in (0, 1, 2, 3) or line_order not in (0, 1, 2):
         raise InputError(src, "levelling", "plane_order must be 0-3 and line_order 0-2")
     if pixel_size is not None:
