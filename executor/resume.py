@@ -1,20 +1,16 @@
-"""Resuming a stopped run from its log: the last checkpoint, what the run was given, and
-(dry-runs) the simulated world as it was then.
+"""Resuming a stopped run from its log: the last checkpoint and what the run was given.
 
 A run log holds a ``/checkpoint`` after every push: the executor's whole state
 (:meth:`~nanoasm.executor.assembly.Assembly.state_dict`). ``nanoasm run --resume`` and
 ``nanoasm dry-run --resume`` read the last one and go on from there
 (:meth:`~nanoasm.executor.assembly.Assembly.resume`), writing a new log beside the old
-one. A dry-run's simulated world is not in the log (a real run's world goes on by
-itself): the harness keeps it beside the log, ``run.mcap.sim``, replaced atomically at
-every checkpoint, so a run killed at any moment leaves a world that matches one of the
-log's checkpoints.
+one. What else a harness keeps to go on with is its own business (a dry-run's world:
+:mod:`nanoasm.simkeep`).
 """
 
 from __future__ import annotations
 
 import os
-import pickle
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -23,10 +19,6 @@ from typing import Any
 import numpy as np
 
 from nanoasm.errors import InputError
-from nanoasm.fileio import write_atomic
-
-SIM_SUFFIX = ".sim"
-SIM_FORMAT = "nanoasm.simstate/1"
 
 
 @dataclass(frozen=True)
@@ -91,12 +83,6 @@ def resume_point(path: str | os.PathLike, kind: str, at: float | None = None) ->
     return ResumePoint(str(path), state, layout, dict(log.metadata.get("nanoasm", {})), scene)
 
 
-def sim_state_path(log_path: str | os.PathLike) -> Path:
-    """Where a dry-run keeps its simulated world beside ``log_path``."""
-    p = Path(log_path)
-    return p.with_name(p.name + SIM_SUFFIX)
-
-
 def resumed_log_path(log_path: str | os.PathLike) -> Path:
     """A new log beside ``log_path`` for the resumed run: ``run-resumed.mcap``, then
     ``run-resumed2.mcap``, ... (the stopped run's log is never overwritten)."""
@@ -107,42 +93,6 @@ def resumed_log_path(log_path: str | os.PathLike) -> Path:
         if not q.exists():
             return q
     raise InputError(str(log_path), None, "too many resumed logs beside it")
-
-
-class SimKeeper:
-    """Dry-run harness subscriber: after every checkpoint, the simulated world (pickled)
-    and what the report needs from before the run, written atomically to ``path``."""
-
-    def __init__(self, path: str | os.PathLike, sim, extra: dict):
-        self.path, self.sim, self.extra = Path(path), sim, extra
-
-    def __call__(self, topic: str, doc: dict) -> None:
-        if topic != "checkpoint":
-            return
-        t = float(doc.get("t", self.sim.clock()))
-        blob = pickle.dumps({"format": SIM_FORMAT, "t": t, "sim": self.sim, **self.extra},
-                            protocol=pickle.HIGHEST_PROTOCOL)
-        write_atomic(self.path, blob, mode=0o600)     # a pickle: for its owner alone
-
-
-def load_sim_state(path: str | os.PathLike, state: dict | None = None) -> dict:
-    """The simulated world kept beside a dry-run's log (``t``: its instrument time); if
-    ``state`` is given it must be that checkpoint's. Only open files you wrote: they are
-    pickles."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(str(path), None, "the simulated world of this dry-run is missing (it is "
-                                          "written beside the log as LOG.sim)")
-    try:
-        kept = pickle.loads(p.read_bytes())
-    except Exception as err:          # a damaged file: say so in one line
-        raise InputError(str(path), None, f"unreadable simulated world ({type(err).__name__})") from None
-    if not isinstance(kept, dict) or kept.get("format") != SIM_FORMAT:
-        raise InputError(str(path), None, "not a nanoasm simulated world")
-    if state is not None and not np.isclose(float(kept["t"]), float(state["t"]), rtol=0.0, atol=1e-6):
-        raise InputError(str(path), None, f"holds the world at t = {kept['t']:.3f} s, but the log's last "
-                                          f"checkpoint is at t = {float(state['t']):.3f} s")
-    return kept
 
 
 class ShiftedClock:

@@ -386,7 +386,8 @@ def dry_run_cmd(
     from nanoasm.cad.layout import load_layout
     from nanoasm.dryrun import dry_run
     from nanoasm.examples import path as example
-    from nanoasm.executor.resume import load_sim_state, resume_point, resumed_log_path, sim_state_path
+    from nanoasm.executor.resume import resume_point, resumed_log_path
+    from nanoasm.simkeep import load_sim_state, sim_state_path
     from nanoasm.executor.strategy import ExecOptions
     from nanoasm.planner.options import PLANNERS, PlanOptions
     from nanoasm.world.scene import load_scene

@@ -21,11 +21,11 @@ from nanoasm.executor.assembly import Assembly
 from nanoasm.executor.summary import RunSummary
 from nanoasm.executor.engine import RunEngine, Subscriber
 from nanoasm.executor.report import InstrumentTime, Report, WallTime
-from nanoasm.executor.resume import SimKeeper
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.planner import PlanOptions
 from nanoasm.planner.plan import Assignment
 from nanoasm.planner.assign import in_slot
+from nanoasm.simkeep import SimKeeper
 from nanoasm.world.scene import Scene
 from nanoasm.world.sim import SimulatedAFM
 

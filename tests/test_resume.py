@@ -21,9 +21,9 @@ from nanoasm.executor.assembly import Assembly
 from nanoasm.executor.engine import RunEngine
 from nanoasm.executor.logread import read_log
 from nanoasm.executor.report import load_report
-from nanoasm.executor.resume import (ShiftedClock, clock_shift, load_sim_state, resume_point,
-                                     resumed_log_path, sim_state_path)
+from nanoasm.executor.resume import ShiftedClock, clock_shift, resume_point, resumed_log_path
 from nanoasm.executor.strategy import ExecOptions
+from nanoasm.simkeep import load_sim_state, sim_state_path
 from nanoasm.world.sim import SimulatedAFM
 
 
