@@ -53,11 +53,6 @@ class Belief:
     def lose(self, object_id: str) -> None:
         self.lost.add(object_id)
 
-    def environment(self) -> Environment:
-        """The belief as an environment for the planner (lost objects left out)."""
-        objs = tuple(o for oid, o in self.objects.items() if oid not in self.lost)
-        return Environment(self.area, objs, self.obstacles, "belief")
-
     def to_dict(self) -> dict:
         return {"objects": [o.to_dict() for o in self.objects.values()],
                 "lost": sorted(self.lost), "touched": sorted(self.touched)}

@@ -10,17 +10,25 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass
+from typing import NoReturn
 
 from nanoasm.fileio import dumps_json, read_document, write_atomic
+from nanoasm.param import check_number
 from nanoasm.schema import Point, Table, check_format
 
 FORMAT = "nanoasm.plan/1"
 
 
-def _finite_points(points: tuple[Point, ...], what: str) -> None:
+def _check_points(points: tuple[Point, ...], what: str) -> None:
+    """ValueError naming ``what`` unless every point is two finite numbers."""
+    def fail(_problem: str = "") -> NoReturn:
+        raise ValueError(f"{what}: every point must be two finite numbers")
+
     for p in points:
-        if len(p) != 2 or not all(math.isfinite(v) for v in p):
-            raise ValueError(f"{what}: every point must be two finite numbers")
+        if len(p) != 2:
+            fail()
+        for v in p:
+            check_number(v, fail)
 
 
 @dataclass(frozen=True)
@@ -38,7 +46,7 @@ class Expect:
     angle: float | None = None
 
     def __post_init__(self) -> None:
-        _finite_points((self.at,), "expect.at")
+        _check_points((self.at,), "expect.at")
         if self.angle is not None and not math.isfinite(self.angle):
             raise ValueError("expect.angle must be finite or None")
 
@@ -66,7 +74,7 @@ class Operation:
             raise ValueError(f"operation {self.id}: kind must be 'push'")
         if len(self.tip_path) < 2:
             raise ValueError(f"operation {self.id}: tip_path needs at least two points")
-        _finite_points(self.tip_path, f"operation {self.id}: tip_path")
+        _check_points(self.tip_path, f"operation {self.id}: tip_path")
 
     def to_dict(self) -> dict:
         return {"id": self.id, "object": self.object, "target": self.target, "kind": self.kind,
