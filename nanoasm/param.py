@@ -144,7 +144,8 @@ def is_param(f: dataclasses.Field) -> bool:
 
 
 def _limits(f: dataclasses.Field) -> dict:
-    return {k: f.metadata[k] for k in _LIMITS if f.metadata[k] not in (None, False)}
+    m = f.metadata          # not "in (None, False)": a limit of 0.0 equals False
+    return {k: m[k] for k in _LIMITS if m[k] is not None and m[k] is not False}
 
 
 def _components(n: int) -> tuple[str, ...]:
