@@ -12,8 +12,8 @@ leaves a readable prefix (:func:`nanoasm.executor.logread.read_log` reads it). P
 are in nm in the layout frame (``frame_id`` ``"layout"``) unless a topic says
 ``scanner``; Foxglove's 3-D panel shows 1 nm as 1 m.
 
-Only what the executor knows goes into the log; the dry-run harness alone may add the
-simulated truth (:meth:`RunLog.sim_truth`, topics under ``/sim/``).
+Only what the executor knows goes into the log; the harness that runs it may add
+channels of its own (:meth:`RunLog.add_channel`, :meth:`RunLog.write`).
 """
 
 from __future__ import annotations
@@ -56,8 +56,6 @@ TOPICS: tuple[tuple[str, str, str], ...] = (
     ("/checkpoint", "nanoasm.Checkpoint", "the procedure's state after each push, losslessly (for resume)"),
     ("/result", "nanoasm.Result", "what the run did: assignment, unfilled slots, counts, times, failures"),
     ("/stop", "nanoasm.Stop", "how the run ended: state and reason"),
-    ("/sim/truth", "nanoasm.SimTruth", "dry-runs only, from the harness: true objects before and after"),
-    ("/sim/truth/scene", "foxglove.SceneUpdate", "dry-runs only: the true objects after the run"),
 )
 
 #: Engine topic -> log topic of the JSON channel that keeps it as it is.
@@ -81,7 +79,6 @@ _KEEPOUT = (1.0, 0.3, 0.3, 1.0)
 _AREA = (0.6, 0.6, 0.6, 1.0)
 _OBJECT = (1.0, 0.8, 0.2, 1.0)
 _BELIEF = (0.3, 0.9, 0.4, 0.9)
-_TRUTH = (0.8, 0.4, 1.0, 0.9)
 _OK = (0.2, 0.9, 0.3, 1.0)
 _FAILED = (1.0, 0.2, 0.2, 1.0)
 _SCAN = (1.0, 1.0, 1.0, 1.0)
@@ -138,7 +135,6 @@ _SCHEMAS = {
     "nanoasm.Checkpoint": _json_schema("nanoasm.Checkpoint", "procedure state", ("remaining", "belief")),
     "nanoasm.Result": _json_schema("nanoasm.Result", "what the run did", ("counts",)),
     "nanoasm.Stop": _json_schema("nanoasm.Stop", "how the run ended", ("state", "reason")),
-    "nanoasm.SimTruth": _json_schema("nanoasm.SimTruth", "simulated truth (harness only)", ("phase", "objects")),
 }
 
 
@@ -174,8 +170,9 @@ class RunLog:
     attachments : dict, optional
         ``name -> (media type, bytes)``, attached at the start (e.g. the instrument file).
     truth : bool
-        A dry-run harness will add the simulated truth after a completed run
-        (:meth:`sim_truth`); the engine's ``close()`` then only flushes.
+        Held open for its harness: after a completed run the engine's ``close()`` only
+        flushes; the harness adds its own records (:meth:`write`, a dry-run's truth) and
+        calls :meth:`finish`. A run that did not complete closes as usual.
     """
 
     def __init__(self, path=None, *, live_port: int | None = None, layout=None,
@@ -225,20 +222,25 @@ class RunLog:
         return None if self.server is None else self.server.port
 
     def _open_channels(self) -> dict[str, Any]:
+        return {topic: self._channel(topic, schema, _SCHEMAS.get(schema)) for topic, schema, _ in TOPICS}
+
+    def _channel(self, topic: str, schema: str, json_schema: dict | None) -> Any:
+        """A channel of a Foxglove message (``foxglove.*``), or of JSON with ``json_schema``."""
         fg = self._fg
         from foxglove import channels as fc
 
-        ctx = self.context
-        out: dict[str, Any] = {}
-        for topic, schema, _ in TOPICS:
-            if schema.startswith("foxglove."):
-                cls = getattr(fc, schema.split(".", 1)[1] + "Channel")
-                out[topic] = cls(topic, context=ctx)
-            else:
-                out[topic] = fg.Channel(topic, context=ctx, message_encoding="json",
-                                        schema=fg.Schema(name=schema, encoding="jsonschema",
-                                                         data=json.dumps(_SCHEMAS[schema]).encode()))
-        return out
+        if schema.startswith("foxglove."):
+            return getattr(fc, schema.split(".", 1)[1] + "Channel")(topic, context=self.context)
+        return fg.Channel(topic, context=self.context, message_encoding="json",
+                          schema=fg.Schema(name=schema, encoding="jsonschema",
+                                           data=json.dumps(json_schema).encode()))
+
+    def add_channel(self, topic: str, schema: str, description: str = "", required: tuple[str, ...] = ()) -> None:
+        """A channel of the harness's own beside :data:`TOPICS`: ``schema`` names a Foxglove
+        message (``foxglove.SceneUpdate``) or titles a loose JSON schema with this
+        description and these required keys."""
+        if not self._closed and topic not in self.channels:
+            self.channels[topic] = self._channel(topic, schema, _json_schema(schema, description, required))
 
     # -- writing ------------------------------------------------------------------------
     def _log(self, topic: str, msg: Any, t: float | None) -> None:
@@ -328,25 +330,24 @@ class RunLog:
         self._log("/local_scan/lines", self._paths_scene([("line", (a.tolist(), b.tolist()))], _SCAN, t,
                                                          thickness=4.0), t)
 
-    def sim_scene(self, scene, config, seed: int | None) -> None:
-        """Dry-run harness: attach the scene and the simulated instrument's configuration."""
-        self.attach("scene.json", scene.dumps_json().encode("utf-8"))
-        self.attach("instrument.json", to_json(config))
-        self.metadata("dry-run", {"seed": str(seed)})
+    def write(self, topic: str, msg: Any, t: float | None) -> None:
+        """A message on a channel (a dict or list as JSON, or a Foxglove message) at
+        instrument time ``t``, s (None: the latest seen)."""
+        self._log(topic, msg, t)
 
-    def sim_truth(self, initial, final, ids: dict[str, str], t: float) -> None:
-        """Dry-run harness: the true objects (layout frame) before and after the run, and which
-        identified object each one is (``ids``: identified id -> scene id); then closes."""
-        for phase, bodies in (("initial", initial), ("final", final)):
-            doc = {"phase": phase, "objects": [b.to_dict() for b in bodies], "ids": ids}
-            self._log("/sim/truth", doc, t)
-        self._log("/sim/truth/scene", self._bodies_scene([b.to_dict() for b in final], "truth", _TRUTH, t), t)
+    def write_bodies(self, topic: str, bodies, t: float | None, *, prefix: str, colour) -> None:
+        """Bodies (``Body.to_dict()`` documents) drawn on a ``foxglove.SceneUpdate`` channel,
+        each as entity ``prefix:id`` in ``colour`` (r, g, b, a)."""
+        self._log(topic, self._bodies_scene(bodies, prefix, colour, t), t)
+
+    def finish(self) -> None:
+        """Close the log, also after a completed run that it holds open for its harness."""
         self._hold = False
         self.close()
 
     def close(self) -> None:
-        """Finish the file and stop the live server (idempotent). After a completed run of a
-        dry-run that awaits the truth, the first call only flushes."""
+        """Finish the file and stop the live server (idempotent). After a completed run that
+        it holds open for its harness (``truth``), the first call only flushes."""
         if self._closed:
             return
         if self._hold:

@@ -21,6 +21,7 @@ from nanoasm.executor.assembly import Assembly
 from nanoasm.executor.summary import RunSummary
 from nanoasm.executor.engine import RunEngine, Subscriber
 from nanoasm.executor.report import InstrumentTime, Report, WallTime
+from nanoasm.executor.runlog import RunLog, to_json
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.planner import PlanOptions
 from nanoasm.planner.plan import Assignment
@@ -43,6 +44,34 @@ class Outcome:
     def rms_error(self) -> float:
         vals = [self.errors[t] for t in self.filled]
         return math.sqrt(sum(v * v for v in vals) / len(vals)) if vals else math.nan
+
+
+#: The run log's channels of the truth, which this harness alone writes: (topic, schema,
+#: what it holds), as :data:`nanoasm.executor.runlog.TOPICS` lists the executor's.
+TRUTH_TOPICS = (
+    ("/sim/truth", "nanoasm.SimTruth", "dry-runs only, from the harness: true objects before and after"),
+    ("/sim/truth/scene", "foxglove.SceneUpdate", "dry-runs only: the true objects after the run"),
+)
+_TRUTH_COLOUR = (0.8, 0.4, 1.0, 0.9)
+
+
+def _log_world(log: RunLog, scene: Scene, sim: SimulatedAFM, seed: int) -> None:
+    """Open the truth's channels; attach the scene and the simulated instrument's configuration."""
+    log.add_channel("/sim/truth", "nanoasm.SimTruth", "simulated truth (harness only)", ("phase", "objects"))
+    log.add_channel("/sim/truth/scene", "foxglove.SceneUpdate")
+    log.attach("scene.json", scene.dumps_json().encode("utf-8"))
+    log.attach("instrument.json", to_json(sim.config))
+    log.metadata("dry-run", {"seed": str(seed)})
+
+
+def _log_truth(log: RunLog, initial: tuple[Body, ...], final: tuple[Body, ...], ids: dict[str, str],
+               t: float) -> None:
+    """The true objects (layout frame) before and after the run, and which identified object
+    each one is (``ids``: identified id -> scene id); then the log is finished."""
+    for phase, bodies in (("initial", initial), ("final", final)):
+        log.write("/sim/truth", {"phase": phase, "objects": [b.to_dict() for b in bodies], "ids": ids}, t)
+    log.write_bodies("/sim/truth/scene", [b.to_dict() for b in final], t, prefix="truth", colour=_TRUTH_COLOUR)
+    log.finish()
 
 
 def _layout_frame(sim: SimulatedAFM, summary: RunSummary, bodies: tuple[Body, ...]) -> tuple[Body, ...]:
@@ -117,10 +146,10 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     if keep_sim is not None:
         subscribers.append(SimKeeper(keep_sim, sim, {"start_clock": start_clock, "initial": initial_sample}))
     engine = RunEngine(sim, subscribers)
-    # run logs (RunLog) get the scene before and the truth after the run, from the harness alone
-    logs = [s for s in subscribers if hasattr(s, "sim_truth")]
+    # run logs get the scene before and the truth after the run, from this harness alone
+    logs = [s for s in subscribers if isinstance(s, RunLog)]
     for log in logs:
-        log.sim_scene(scene, sim.config, seed)
+        _log_world(log, scene, sim, seed)
     procedure = (assembly.resume(sim.config, resume[0]) if resume is not None
                  else assembly.procedure(sim.config))
     summary = engine.run(procedure)
@@ -130,7 +159,7 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     t = summary.times
     ids = match_ids(summary.env.objects, initial)
     for log in logs:
-        log.sim_truth(initial, final, ids, sim.clock())
+        _log_truth(log, initial, final, ids, sim.clock())
     assignment = tuple(Assignment(a.target, ids.get(a.object, a.object)) for a in summary.assignment)
     report = Report(
         scene=scene_name, layout=layout_name, seed=seed,

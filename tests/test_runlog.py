@@ -16,6 +16,7 @@ import pytest
 from runlogkit import kill_when, logged_dry_run, particle_bowtie
 
 from nanoasm.cad.layout import layout_from_dict
+from nanoasm.dryrun import TRUTH_TOPICS
 from nanoasm.errors import InputError
 from nanoasm.executor.logread import last_checkpoint, read_log
 from nanoasm.executor.runlog import TOPICS, RunLog, open_run_log
@@ -34,8 +35,9 @@ def logged(tmp_path_factory):
 def test_every_topic_is_written_and_read_back(logged):
     path, out, rec, log = logged
     assert log.complete and log.problem is None and log.read_bytes == log.size == path.stat().st_size
-    assert {t for t, _, _ in TOPICS} == set(log.channels), "every topic has a channel in a dry-run log"
-    for topic, schema, _ in TOPICS:
+    topics = TOPICS + TRUTH_TOPICS
+    assert {t for t, _, _ in topics} == set(log.channels), "every topic has a channel in a dry-run log"
+    for topic, schema, _ in topics:
         msgs = log.topic(topic)
         assert msgs, f"nothing on {topic}"
         assert all(m.schema == schema for m in msgs)
@@ -128,7 +130,7 @@ def test_the_readme_lists_every_topic_with_its_schema():
         if line.startswith("| `/"):
             cells = [c.strip() for c in line.strip("|").split("|")]
             rows[cells[0].strip("`")] = cells[1]
-    assert rows == {t: s for t, s, _ in TOPICS}
+    assert rows == {t: s for t, s, _ in TOPICS + TRUTH_TOPICS}
 
 
 def test_a_log_cut_anywhere_is_read_and_reviewed_as_far_as_it_goes(logged, tmp_path):
