@@ -12,20 +12,21 @@ and :class:`~nanoasm.planner.Plan` (their own formats, ``nanoasm.env/1`` and
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
 
-from nanoasm.bodies import Body, body_from_table
-from nanoasm.errors import InputError
-from nanoasm.param import check_number, show_value, type_name
+from nanoasm.bodies import Body
+from nanoasm.param import show_value, type_name
 from nanoasm.planner import Operation
-from nanoasm.planner.plan import FORMAT as PLAN_FORMAT
 from nanoasm.planner.plan import Assignment, Unfilled, assignments_from, plan_from_dict, unfilled_from
 from nanoasm.schema import Table
-from nanoasm.world.environment import KINDS, EnvObject, environment_from_dict
+from nanoasm.world.environment import environment_from_dict
+
+from .belief import Belief
+from .document_fields import DocumentError, Fields, body_from_stored, operation_from_stored, pair
+from .ledger import RunLedger
 
 # -- topics -------------------------------------------------------------------------------
 EVENT = "event"                  #: a log line (:class:`EventDoc`)
@@ -46,6 +47,9 @@ CHANNELS = {ENVIRONMENT: "/environment", PLAN: "/plan", PUSH: "/push", DRIFT: "/
             SCAN_LINE: "/local_scan", DAC: "/dac", CHECKPOINT: "/checkpoint", RESULT: "/result",
             STOP: "/stop"}
 
+#: Push verdicts that mean the push failed (anything else, "pushing", went as planned).
+FAILED_VERDICTS = ("slipped", "stuck", "no_contact")
+
 #: The checkpoint format (the procedure's state; :mod:`nanoasm.executor.checkpoints`).
 CHECKPOINT_FORMAT = "nanoasm.checkpoint/1"
 
@@ -56,130 +60,12 @@ class Document(Protocol):
     def to_dict(self) -> dict: ...
 
 
-class DocumentError(InputError, ValueError):
-    """A stored document that is not what its topic holds: names the document and the key."""
-
-    def __init__(self, kind: str, key: str | None, problem: str):
-        super().__init__(f"{kind} document", key, problem)
-
-
 def as_dict(doc: Document | dict) -> dict:
     """A document as the dict the run log keeps (a dict as it is).
 
     TRANSITION: some producers still emit plain dicts; this goes once all of them emit
     documents (subscribers then call ``doc.to_dict()``)."""
     return doc if isinstance(doc, dict) else doc.to_dict()
-
-
-# -- checked reading ------------------------------------------------------------------------
-class _Fields:
-    """The keys of one stored document, read with errors naming the document and the key."""
-
-    def __init__(self, kind: str, data: Any):
-        self.kind = kind
-        if not isinstance(data, Mapping):
-            self.fail(None, f"must be a table, got {type_name(data)}")
-        self.data = data
-
-    def fail(self, key: str | None, problem: str):
-        raise DocumentError(self.kind, key, problem)
-
-    def get(self, key: str) -> Any:
-        if key not in self.data:
-            self.fail(key, "missing required key")
-        return self.data[key]
-
-    def number(self, key: str, *, optional: bool = False) -> float | None:
-        v = self.get(key)
-        if v is None and optional:
-            return None
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-            self.fail(key, f"must be a number, got {type_name(v)} {show_value(v)}".rstrip())
-        return float(v)
-
-    def integer(self, key: str) -> int:
-        return int(check_number(self.get(key), lambda p: self.fail(key, p), integer=True))
-
-    def string(self, key: str) -> str:
-        v = self.get(key)
-        if not isinstance(v, str):
-            self.fail(key, f"must be a string, got {type_name(v)} {show_value(v)}".rstrip())
-        return v
-
-    def numbers(self, key: str, n: int | None = None, *, optional: bool = False) -> tuple | None:
-        """An array of numbers (of ``n`` of them), as a tuple of floats (NaN allowed)."""
-        v = self.get(key)
-        if v is None and optional:
-            return None
-        return self.array(key, v, n)
-
-    def array(self, key: str, v: Any, n: int | None = None) -> tuple:
-        """``v``, found at ``key``, as a tuple of (``n``) floats."""
-        if isinstance(v, np.ndarray):
-            v = v.tolist()
-        if not isinstance(v, (list, tuple)) or (n is not None and len(v) != n):
-            want = "an array of numbers" if n is None else f"an array of {n} numbers"
-            self.fail(key, f"must be {want}, got {type_name(v)} {show_value(v)}".rstrip())
-        if any(isinstance(x, (bool, str)) for x in v):
-            self.fail(key, "must hold numbers only")
-        try:
-            return tuple(float(x) for x in v)
-        except (TypeError, ValueError):
-            self.fail(key, "must hold numbers only")
-
-    def mapping(self, key: str, value: type) -> dict:
-        """A table of ``value``s (str or float or int) by name."""
-        v = self.get(key)
-        if not isinstance(v, Mapping):
-            self.fail(key, f"must be a table, got {type_name(v)}")
-        out = {}
-        for k, x in v.items():
-            if value is str and not isinstance(x, str):
-                self.fail(f"{key}.{k}", f"must be a string, got {type_name(x)}")
-            if value is not str:
-                x = check_number(x, lambda p, k=k: self.fail(f"{key}.{k}", p), integer=value is int)
-            out[str(k)] = value(x)
-        return out
-
-    def table(self, key: str) -> Table:
-        """A nested table, read with :class:`~nanoasm.schema.Table` (keys named from here)."""
-        v = self.get(key)
-        if not isinstance(v, Mapping):
-            self.fail(key, f"must be a table, got {type_name(v)}")
-        return Table(v, f"{self.kind} document", key)
-
-    def parse(self, fn, *args):
-        """``fn(*args)`` with the located errors of the project's readers made DocumentErrors."""
-        try:
-            return fn(*args)
-        except DocumentError:
-            raise
-        except InputError as err:
-            raise DocumentError(self.kind, err.key, err.problem) from None
-        except (ValueError, TypeError) as err:
-            raise DocumentError(self.kind, None, str(err)) from None
-
-
-def _pair(v) -> tuple[float, float]:
-    return (float(v[0]), float(v[1]))
-
-
-def _env_object(t: Table) -> Body:
-    """An object as :meth:`EnvObject.to_dict` wrote it (a plain Body without ``confidence``)."""
-    body, extra = body_from_table(t, "", KINDS, extra=("confidence", "edge"))
-    if not extra:
-        return body
-    return EnvObject(body.id, body.kind, body.at, body.diameter, body.angle, body.length,
-                     t.number("confidence", 1.0, lo=0.0, hi=1.0), t.boolean("edge", False))
-
-
-def _operation(d: Any) -> Operation:
-    """An operation as :meth:`Operation.to_dict` wrote it (the plan format's checks)."""
-    try:
-        return plan_from_dict({"format": PLAN_FORMAT, "operations": [d]}).operations[0]
-    except InputError as err:
-        key = (err.key or "").replace("operations[1]", "op", 1) or "op"
-        raise InputError(err.source, key, err.problem) from None
 
 
 # -- the documents ----------------------------------------------------------------------------
@@ -196,7 +82,7 @@ class EventDoc:
 
     @classmethod
     def from_dict(cls, d: Any) -> EventDoc:
-        f = _Fields(EVENT, d)
+        f = Fields(EVENT, d)
         return cls(f.number("t"), f.string("level"), f.string("text"))
 
 
@@ -212,7 +98,7 @@ class StopDoc:
 
     @classmethod
     def from_dict(cls, d: Any) -> StopDoc:
-        f = _Fields(STOP, d)
+        f = Fields(STOP, d)
         return cls(f.string("state"), f.string("reason"))
 
 
@@ -231,10 +117,15 @@ class PushDoc:
     belief: Body
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "offset", _pair(self.offset))
-        object.__setattr__(self, "before", _pair(self.before))
+        object.__setattr__(self, "offset", pair(self.offset))
+        object.__setattr__(self, "before", pair(self.before))
         if self.peak_force is not None:
             object.__setattr__(self, "peak_force", float(self.peak_force))
+
+    @property
+    def failed(self) -> bool:
+        """Whether the push failed (:data:`FAILED_VERDICTS`)."""
+        return self.verdict in FAILED_VERDICTS
 
     def to_dict(self) -> dict:
         return {"op": self.op.to_dict(), "verdict": self.verdict, "t": self.t, "offset": list(self.offset),
@@ -242,9 +133,9 @@ class PushDoc:
 
     @classmethod
     def from_dict(cls, d: Any) -> PushDoc:
-        f = _Fields(PUSH, d)
-        op = f.parse(_operation, f.get("op"))
-        belief = f.parse(_env_object, f.table("belief"))
+        f = Fields(PUSH, d)
+        op = f.parse(operation_from_stored, f.get("op"))
+        belief = f.parse(body_from_stored, f.table("belief"))
         return cls(op, f.string("verdict"), f.number("t"), f.numbers("offset", 2), f.numbers("before", 2),
                    f.number("peak_force", optional=True), belief)
 
@@ -260,11 +151,11 @@ class DriftDoc:
     velocity: tuple[float, float] | None
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "offset", _pair(self.offset))
+        object.__setattr__(self, "offset", pair(self.offset))
         if self.cov is not None:
-            object.__setattr__(self, "cov", (_pair(self.cov[0]), _pair(self.cov[1])))
+            object.__setattr__(self, "cov", (pair(self.cov[0]), pair(self.cov[1])))
         if self.velocity is not None:
-            object.__setattr__(self, "velocity", _pair(self.velocity))
+            object.__setattr__(self, "velocity", pair(self.velocity))
 
     def to_dict(self) -> dict:
         return {"t": self.t, "offset": list(self.offset),
@@ -273,7 +164,7 @@ class DriftDoc:
 
     @classmethod
     def from_dict(cls, d: Any) -> DriftDoc:
-        f = _Fields(DRIFT, d)
+        f = Fields(DRIFT, d)
         cov = f.get("cov")
         if cov is not None:
             if not isinstance(cov, list) or len(cov) != 2:
@@ -294,10 +185,10 @@ class ScanLineDoc:
     offset: tuple[float, float]
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "a", _pair(self.a))
-        object.__setattr__(self, "b", _pair(self.b))
+        object.__setattr__(self, "a", pair(self.a))
+        object.__setattr__(self, "b", pair(self.b))
         object.__setattr__(self, "heights", tuple(np.asarray(self.heights, float).tolist()))
-        object.__setattr__(self, "offset", _pair(self.offset))
+        object.__setattr__(self, "offset", pair(self.offset))
 
     def to_dict(self) -> dict:
         return {"t": self.t, "a": list(self.a), "b": list(self.b), "heights": list(self.heights),
@@ -305,7 +196,7 @@ class ScanLineDoc:
 
     @classmethod
     def from_dict(cls, d: Any) -> ScanLineDoc:
-        f = _Fields(SCAN_LINE, d)
+        f = Fields(SCAN_LINE, d)
         return cls(f.number("t"), f.numbers("a", 2), f.numbers("b", 2), f.numbers("heights"),
                    f.numbers("offset", 2))
 
@@ -340,7 +231,7 @@ class DacDoc:
 
     @classmethod
     def from_dict(cls, d: Any) -> DacDoc:
-        f = _Fields(DAC, d)
+        f = Fields(DAC, d)
         kind = f.numbers("kind")
         if any(k != int(k) for k in kind):
             f.fail("kind", "must hold integers only")
@@ -359,7 +250,7 @@ class FullScanDoc:
     origin: tuple[float, float]
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "origin", _pair(self.origin))
+        object.__setattr__(self, "origin", pair(self.origin))
 
     def to_dict(self) -> dict:
         return {"t": self.t, "height": self.height, "pixel_size": self.pixel_size, "origin": self.origin}
@@ -374,7 +265,7 @@ class FullScanDoc:
 
     @classmethod
     def from_dict(cls, d: Any) -> FullScanDoc:
-        f = _Fields(FULL_SCAN, d)
+        f = Fields(FULL_SCAN, d)
         try:
             height = np.asarray(f.get("height"), float)
         except (TypeError, ValueError):
@@ -401,9 +292,20 @@ class CheckpointDoc:
     def to_dict(self) -> dict:
         return {**self.state, "drift": None if self.drift is None else list(self.drift)}
 
+    def belief(self) -> Belief:
+        """The executor's belief then (:meth:`Belief.from_state`); DocumentError when the
+        state holds none."""
+        f = Fields(CHECKPOINT, self.state)
+        return f.parse(Belief.from_state, f.get("belief"), within="belief")
+
+    def ledger(self) -> RunLedger:
+        """What the run had done by then (:meth:`RunLedger.from_state`); DocumentError
+        when the state does not tell."""
+        return Fields(CHECKPOINT, self.state).parse(RunLedger.from_state, self.state)
+
     @classmethod
     def from_dict(cls, d: Any) -> CheckpointDoc:
-        f = _Fields(CHECKPOINT, d)
+        f = Fields(CHECKPOINT, d)
         if f.get("format") != CHECKPOINT_FORMAT:
             f.fail("format", f"must be {CHECKPOINT_FORMAT!r}, got {show_value(d['format'])}")
         f.number("t")
@@ -433,7 +335,7 @@ class ResultDoc:
         object.__setattr__(self, "unfilled", tuple(self.unfilled))
         object.__setattr__(self, "pushed", tuple(self.pushed))
         object.__setattr__(self, "failures", tuple((o, c) for o, c in self.failures))
-        object.__setattr__(self, "origin", _pair(self.origin))
+        object.__setattr__(self, "origin", pair(self.origin))
 
     def to_dict(self) -> dict:
         return {"assignment": [a.to_dict() for a in self.assignment],
@@ -444,7 +346,7 @@ class ResultDoc:
 
     @classmethod
     def from_dict(cls, d: Any) -> ResultDoc:
-        f = _Fields(RESULT, d)
+        f = Fields(RESULT, d)
         t = Table(d, f"{RESULT} document")
         for key in ("assignment", "unfilled", "failures"):
             f.get(key)
@@ -469,9 +371,9 @@ def document_from_dict(topic: str, d: Any):
     """A stored document of ``topic`` read back: a document of :data:`TYPES`, an
     Environment or a Plan; DocumentError when it is not what the topic holds."""
     if topic == ENVIRONMENT:
-        return _Fields(ENVIRONMENT, d).parse(environment_from_dict, d, f"{ENVIRONMENT} document")
+        return Fields(ENVIRONMENT, d).parse(environment_from_dict, d, f"{ENVIRONMENT} document")
     if topic == PLAN:
-        return _Fields(PLAN, d).parse(plan_from_dict, d, f"{PLAN} document")
+        return Fields(PLAN, d).parse(plan_from_dict, d, f"{PLAN} document")
     if topic not in TYPES:
         raise DocumentError(topic, None, f"unknown topic; one of {', '.join(TOPICS)}")
     return TYPES[topic].from_dict(d)

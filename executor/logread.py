@@ -3,8 +3,10 @@
 :func:`read_log` reads an MCAP run log record by record and stops at the first byte that
 does not make a whole record (a truncated or damaged file), keeping everything before
 it and flagging ``complete=False``. Protobuf messages (Foxglove schemas) are decoded with
-mcap-protobuf-support, JSON messages into Python values. :func:`last_checkpoint` gives
-the last procedure state a run logged, for resuming it.
+mcap-protobuf-support, JSON messages into Python values;
+:meth:`RunLogContents.documents` reads the engine's documents back typed
+(:mod:`nanoasm.executor.documents`). :func:`last_checkpoint` gives the last procedure
+state a run logged, for resuming it.
 """
 
 from __future__ import annotations
@@ -17,6 +19,8 @@ from pathlib import Path
 from typing import Any
 
 from nanoasm.errors import InputError
+
+from .documents import CHANNELS, CHECKPOINT, CheckpointDoc, DocumentError, document_from_dict
 
 MAGIC = b"\x89MCAP0\r\n"
 
@@ -53,6 +57,28 @@ class RunLogContents:
     def last(self, name: str) -> LogMessage | None:
         found = self.topic(name)
         return found[-1] if found else None
+
+    def documents(self, *topics: str, notes: list[str] | None = None) -> list[tuple[str, Any]]:
+        """The documents of the engine's ``topics`` (on their channels,
+        :data:`~nanoasm.executor.documents.CHANNELS`) read back typed, as (topic, document)
+        in log order. A message that is not its topic's document is an InputError naming
+        the file, the channel and the key; with ``notes``, it is skipped and told there."""
+        unknown = [t for t in topics if t not in CHANNELS]
+        if unknown:
+            raise ValueError(f"no JSON channel keeps {', '.join(unknown)}; one of {', '.join(CHANNELS)}")
+        by_channel = {CHANNELS[t]: t for t in topics}
+        out = []
+        for m in self.messages:
+            topic = by_channel.get(m.topic)
+            if topic is None:
+                continue
+            try:
+                out.append((topic, document_from_dict(topic, m.data)))
+            except DocumentError as err:
+                if notes is None:
+                    raise InputError(self.path, m.topic, f"at t = {m.t:.3f} s: {err}") from None
+                notes.append(f"{m.topic} at t = {m.t:.3f} s skipped: {err}")
+        return out
 
     def attachment_json(self, name: str) -> Any:
         """An attachment parsed as JSON, or None (missing or unreadable)."""
@@ -185,8 +211,8 @@ def _decode(channel, schema, data: bytes, decoders: dict, protobuf) -> Any:
     return bytes(data)
 
 
-def last_checkpoint(path: str | os.PathLike) -> dict | None:
-    """The last checkpoint a run logged (the procedure's state, as it was), or None."""
-    log = read_log(path, topics={"/checkpoint"})
-    last = log.last("/checkpoint")
-    return None if last is None else last.data
+def last_checkpoint(path: str | os.PathLike) -> CheckpointDoc | None:
+    """The last checkpoint a run logged (the procedure's state, as it was), or None;
+    InputError when a logged checkpoint is not one."""
+    docs = read_log(path, topics={CHANNELS[CHECKPOINT]}).documents(CHECKPOINT)
+    return docs[-1][1] if docs else None

@@ -1,7 +1,8 @@
 """Resuming a stopped run from its log: the last checkpoint and what the run was given.
 
 A run log holds a ``/checkpoint`` after every push: the executor's whole state
-(:meth:`~nanoasm.executor.assembly.Assembly.state_dict`). ``nanoasm run --resume`` and
+(:func:`~nanoasm.executor.checkpoints.checkpoint`, read back as a
+:class:`~nanoasm.executor.documents.CheckpointDoc`). ``nanoasm run --resume`` and
 ``nanoasm dry-run --resume`` read the last one and go on from there
 (:meth:`~nanoasm.executor.assembly.Assembly.resume`), writing a new log beside the old
 one. What else a harness keeps to go on with is its own business (a dry-run's world:
@@ -19,6 +20,8 @@ from typing import Any
 import numpy as np
 
 from nanoasm.errors import InputError
+
+from .documents import CHANNELS, CHECKPOINT, ENVIRONMENT, PLAN, RESULT
 
 
 @dataclass(frozen=True)
@@ -50,36 +53,36 @@ def resume_point(path: str | os.PathLike, kind: str, at: float | None = None) ->
     p = Path(path)
     if not p.is_file():
         raise InputError(str(path), None, "no such run log")
-    log = read_log(p, topics={"/checkpoint", "/result", "/environment", "/plan"})
+    log = read_log(p, topics={CHANNELS[t] for t in (CHECKPOINT, RESULT, ENVIRONMENT, PLAN)})
     if not log.channels and not log.attachments:
         raise InputError(str(path), None, f"not a readable run log ({log.problem or 'no records'})")
     logged = log.metadata.get("nanoasm", {}).get("kind")
     if logged != kind:
         other = RESUMED_BY.get(logged or "", "")
         raise InputError(str(path), None, f"not a {kind}'s log" + (f" (resume it with {other})" if other else ""))
-    if log.last("/result") is not None:
+    if log.last(CHANNELS[RESULT]) is not None:
         raise InputError(str(path), None, "the run finished; there is nothing to resume")
-    ckpts = [m for m in log.topic("/checkpoint") if isinstance(m.data, dict) and "format" in m.data]
+    ckpts = [doc for _, doc in log.documents(CHECKPOINT)]
     if at is not None:
-        ckpts = [m for m in ckpts if abs(float(m.data["t"]) - at) <= 1e-6]
+        ckpts = [c for c in ckpts if abs(c.t - at) <= 1e-6]
     ckpt = ckpts[-1] if ckpts else None
     if ckpt is None and at is not None:
-        raise InputError(str(path), "/checkpoint", f"no checkpoint at t = {at:.3f} s, where the kept "
-                                                   "simulated world stands")
+        raise InputError(str(path), CHANNELS[CHECKPOINT], f"no checkpoint at t = {at:.3f} s, where the kept "
+                                                          "simulated world stands")
     if ckpt is None:
-        raise InputError(str(path), "/checkpoint", "the log has no checkpoint (the run stopped before "
-                                                   "its first push ended); start it again")
+        raise InputError(str(path), CHANNELS[CHECKPOINT], "the log has no checkpoint (the run stopped before "
+                                                          "its first push ended); start it again")
     layout_doc = log.attachment_json("layout.json")
     if layout_doc is None:
         raise InputError(str(path), "layout.json", "the log has no layout attached")
     layout = layout_from_dict(layout_doc, f"{path}: layout.json")
     scene_doc = log.attachment_json("scene.json")
     scene = scene_from_dict(scene_doc, f"{path}: scene.json") if scene_doc is not None else None
-    env, plan = log.topic("/environment"), log.topic("/plan")
+    env, plan = log.documents(ENVIRONMENT), log.documents(PLAN)
     if not env or not plan:
-        raise InputError(str(path), "/environment" if not env else "/plan",
+        raise InputError(str(path), CHANNELS[ENVIRONMENT if not env else PLAN],
                          "the log lacks what the run identified or planned first")
-    state = {**ckpt.data, "env": env[0].data, "first_plan": plan[0].data}
+    state = {**ckpt.to_dict(), "env": env[0][1].to_dict(), "first_plan": plan[0][1].to_dict()}
     return ResumePoint(str(path), state, layout, dict(log.metadata.get("nanoasm", {})), scene)
 
 

@@ -28,12 +28,15 @@ from typing import Any
 
 import numpy as np
 
+from .documents import (CHANNELS, CHECKPOINT, DAC, ENVIRONMENT, EVENT, FAILED_VERDICTS, FULL_SCAN, PLAN, PUSH,
+                        RESULT, SCAN_LINE, STOP, Document, as_dict)
+from .foxglove_scenes import (COLOURS, bodies_scene, grid, layout_scene, log_line, nanoseconds, paths_scene,
+                              timestamp)
+
 #: The run log's format name (MCAP profile and metadata).
 FORMAT = "nanoasm.runlog/1"
 #: Every DAC chunk is logged at every ``DAC_EVERY``-th sample.
 DAC_EVERY = 50
-#: Push verdicts that mean the push failed (anything else, "pushing", went as planned).
-FAILED_VERDICTS = ("slipped", "stuck", "no_contact")
 
 # (topic, schema name, what it holds); JSON channels have schema names nanoasm.*
 TOPICS: tuple[tuple[str, str, str], ...] = (
@@ -58,31 +61,13 @@ TOPICS: tuple[tuple[str, str, str], ...] = (
     ("/stop", "nanoasm.Stop", "how the run ended: state and reason"),
 )
 
-#: Engine topic -> log topic of the JSON channel that keeps it as it is.
-_JSON_TOPICS = {"environment": "/environment", "plan": "/plan", "push": "/push", "drift": "/drift",
-                "scan_line": "/local_scan", "dac": "/dac", "checkpoint": "/checkpoint",
-                "result": "/result", "stop": "/stop"}
 #: Bulky sampled topics whose numbers are logged to ``_DIGITS`` decimals (µs, pm, µV):
 #: full precision doubles them (bowtie dry-run: /local_scan 722 -> 356 kB, /dac 120 -> 75 kB
 #: before compression) for digits below the noise.
-_ROUNDED = {"scan_line", "dac"}
+_ROUNDED = {SCAN_LINE, DAC}
 _DIGITS = 6
 #: Topics after which the file is flushed (a SIGKILL then loses nothing before them).
-_FLUSH_AFTER = {"environment", "plan", "push", "checkpoint", "result", "stop", "full_scan"}
-
-_LEVELS = {"debug": "Debug", "info": "Info", "warn": "Warning", "warning": "Warning",
-           "error": "Error", "fatal": "Fatal"}
-
-# colours (r, g, b, a)
-_TARGET = (0.2, 0.6, 1.0, 1.0)
-_KEEPOUT = (1.0, 0.3, 0.3, 1.0)
-_AREA = (0.6, 0.6, 0.6, 1.0)
-_OBJECT = (1.0, 0.8, 0.2, 1.0)
-_BELIEF = (0.3, 0.9, 0.4, 0.9)
-_OK = (0.2, 0.9, 0.3, 1.0)
-_FAILED = (1.0, 0.2, 0.2, 1.0)
-_SCAN = (1.0, 1.0, 1.0, 1.0)
-
+_FLUSH_AFTER = {ENVIRONMENT, PLAN, PUSH, CHECKPOINT, RESULT, STOP, FULL_SCAN}
 
 def _plain(v: Any) -> Any:
     """``json.dumps`` default: numpy values and arrays, dataclasses, sets, tuples as lists."""
@@ -111,10 +96,6 @@ def _rounded(doc: Any) -> Any:
 def to_json(doc: Any) -> bytes:
     """The JSON bytes of a document, as logged (NaN kept, so nothing is lost)."""
     return json.dumps(doc, default=_plain, separators=(",", ":")).encode("utf-8")
-
-
-def _ns(t: float | None) -> int:
-    return int(round(max(float(t), 0.0) * 1e9)) if t is not None and math.isfinite(t) else 0
 
 
 def _json_schema(name: str, description: str, required: tuple[str, ...] = ()) -> dict:
@@ -192,6 +173,9 @@ class RunLog:
         self._t = 0.0                 # latest instrument time seen (s)
         self._pushes = 0
         self._plan_attached = False
+        self._handlers = {EVENT: self._on_event, STOP: self._on_stop, FULL_SCAN: self._on_full_scan,
+                          ENVIRONMENT: self._on_environment, PLAN: self._on_plan, PUSH: self._on_push,
+                          CHECKPOINT: self._on_checkpoint, SCAN_LINE: self._on_scan_line}
         if live_port is not None:
             self.server = foxglove.start_server(name="nanoasm", host="127.0.0.1", port=live_port,
                                                 context=self.context)
@@ -213,7 +197,7 @@ class RunLog:
             self.attach(name, data, media)
         if layout is not None:
             self.attach("layout.json", layout.dumps_json().encode("utf-8"), "application/json")
-            self._log("/layout", self._layout_scene(layout), 0.0)
+            self._log("/layout", layout_scene(layout), 0.0)
         self.flush()
 
     @property
@@ -249,7 +233,8 @@ class RunLog:
         if t is not None and math.isfinite(t):
             self._t = max(self._t, float(t))
         ch = self.channels[topic]
-        ch.log(to_json(msg) if isinstance(msg, (dict, list)) else msg, log_time=_ns(self._t if t is None else t))
+        ch.log(to_json(msg) if isinstance(msg, (dict, list)) else msg,
+               log_time=nanoseconds(self._t if t is None else t))
 
     def flush(self) -> None:
         if self.writer is not None and not self._closed:
@@ -263,29 +248,26 @@ class RunLog:
     def attach(self, name: str, data: bytes, media_type: str = "application/json") -> None:
         """An MCAP attachment, stamped with the latest instrument time."""
         if self.writer is not None and not self._closed:
-            ns = _ns(self._t)
+            ns = nanoseconds(self._t)
             self.writer.attach(log_time=ns, create_time=ns, name=name, media_type=media_type, data=data)
 
-    def __call__(self, topic: str, doc: dict) -> None:
-        """The engine's subscriber interface."""
+    def __call__(self, topic: str, doc: Document | dict) -> None:
+        """The engine's subscriber interface: the document's ``to_dict()`` is logged."""
         if self._closed:
             return
-        t = doc.get("t") if isinstance(doc, dict) else None
+        d = as_dict(doc)
+        t = d.get("t")
         t = t if isinstance(t, (int, float)) else None
-        handler = getattr(self, "_on_" + topic, None)
+        handler = self._handlers.get(topic)
         if handler is not None:
-            handler(doc, t)
-        if topic in _JSON_TOPICS:
-            self._log(_JSON_TOPICS[topic], _rounded(doc) if topic in _ROUNDED else doc, t)
+            handler(d, t)
+        if topic in CHANNELS:
+            self._log(CHANNELS[topic], _rounded(d) if topic in _ROUNDED else d, t)
         if topic in _FLUSH_AFTER:
             self.flush()
 
     def _on_event(self, doc: dict, t: float | None) -> None:
-        from foxglove.messages import Log, LogLevel
-
-        level = getattr(LogLevel, _LEVELS.get(str(doc.get("level", "info")), "Info"))
-        self._log("/events", Log(timestamp=self._stamp(t), level=level, message=str(doc.get("text", "")),
-                                 name="nanoasm"), t)
+        self._log("/events", log_line(self._stamp(t), str(doc.get("level", "info")), str(doc.get("text", ""))), t)
 
     def _on_stop(self, doc: dict, t: float | None) -> None:
         self._on_event({"level": "info" if doc.get("state") == "done" else "error",
@@ -293,33 +275,33 @@ class RunLog:
         self._hold = self._await_truth and doc.get("state") == "done"
 
     def _on_full_scan(self, doc: dict, t: float | None) -> None:
-        self._log("/scan", self._grid(doc, t), t)
+        self._log("/scan", grid(doc, self._stamp(t)), t)
 
     def _on_environment(self, doc: dict, t: float | None) -> None:
-        self._log("/objects", self._bodies_scene(doc.get("objects", ()), "obj", _OBJECT, t), t)
+        self._log("/objects", bodies_scene(doc.get("objects", ()), "obj", COLOURS["object"], self._stamp(t)), t)
 
     def _on_plan(self, doc: dict, t: float | None) -> None:
         if not self._plan_attached:
             self._plan_attached = True
             self.attach("plan.json", to_json(doc))
         paths = [(f"op{op.get('id')}", op.get("tip_path") or ()) for op in doc.get("operations", ())]
-        self._log("/plan/paths", self._paths_scene(paths, (0.6, 0.6, 1.0, 0.6), t, clear=True), t)
+        self._log("/plan/paths", paths_scene(paths, COLOURS["plan"], self._stamp(t), clear=True), t)
 
     def _on_push(self, doc: dict, t: float | None) -> None:
         self._pushes += 1
         op = doc.get("op", {})
-        colour = _FAILED if doc.get("verdict") in FAILED_VERDICTS else _OK
-        self._log("/tip_paths", self._paths_scene([(f"push{self._pushes}", op.get("tip_path") or ())],
-                                                  colour, t), t)
+        colour = COLOURS["failed" if doc.get("verdict") in FAILED_VERDICTS else "ok"]
+        self._log("/tip_paths", paths_scene([(f"push{self._pushes}", op.get("tip_path") or ())], colour,
+                                            self._stamp(t)), t)
         belief = doc.get("belief")
         if isinstance(belief, dict):
-            self._log("/belief", self._bodies_scene([belief], "obj", _BELIEF, t), t)
+            self._log("/belief", bodies_scene([belief], "obj", COLOURS["belief"], self._stamp(t)), t)
 
     def _on_checkpoint(self, doc: dict, t: float | None) -> None:
         belief = doc.get("belief") or {}
         lost = set(belief.get("lost", ()))
         objs = [o for o in belief.get("objects", ()) if o.get("id") not in lost]
-        self._log("/belief", self._bodies_scene(objs, "obj", _BELIEF, t, delete=sorted(lost)), t)
+        self._log("/belief", bodies_scene(objs, "obj", COLOURS["belief"], self._stamp(t), delete=sorted(lost)), t)
 
     def _on_scan_line(self, doc: dict, t: float | None) -> None:
         off = doc.get("offset")
@@ -327,8 +309,8 @@ class RunLog:
             return
         a = np.asarray(doc["a"], float) - np.asarray(off, float)
         b = np.asarray(doc["b"], float) - np.asarray(off, float)
-        self._log("/local_scan/lines", self._paths_scene([("line", (a.tolist(), b.tolist()))], _SCAN, t,
-                                                         thickness=4.0), t)
+        self._log("/local_scan/lines", paths_scene([("line", (a.tolist(), b.tolist()))], COLOURS["scan"],
+                                                   self._stamp(t), thickness=4.0), t)
 
     def write(self, topic: str, msg: Any, t: float | None) -> None:
         """A message on a channel (a dict or list as JSON, or a Foxglove message) at
@@ -338,7 +320,7 @@ class RunLog:
     def write_bodies(self, topic: str, bodies, t: float | None, *, prefix: str, colour) -> None:
         """Bodies (``Body.to_dict()`` documents) drawn on a ``foxglove.SceneUpdate`` channel,
         each as entity ``prefix:id`` in ``colour`` (r, g, b, a)."""
-        self._log(topic, self._bodies_scene(bodies, prefix, colour, t), t)
+        self._log(topic, bodies_scene(bodies, prefix, colour, self._stamp(t)), t)
 
     def finish(self) -> None:
         """Close the log, also after a completed run that it holds open for its harness."""
@@ -366,96 +348,8 @@ class RunLog:
 
     # -- Foxglove messages --------------------------------------------------------------
     def _stamp(self, t: float | None):
-        from foxglove.messages import Timestamp
-
-        ns = _ns(self._t if t is None else t)
-        return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
-
-    def _grid(self, doc: dict, t: float | None):
-        from foxglove.messages import (Grid, PackedElementField, PackedElementFieldNumericType, Pose,
-                                       Quaternion, Vector2, Vector3)
-
-        h = np.ascontiguousarray(np.asarray(doc["height"], dtype="<f4"))
-        ny, nx = h.shape
-        px = float(doc["pixel_size"])
-        ox, oy = (float(v) for v in doc.get("origin", (0.0, 0.0)))
-        return Grid(timestamp=self._stamp(t), frame_id="layout",
-                    pose=Pose(position=Vector3(x=ox, y=oy, z=0.0), orientation=Quaternion(w=1.0)),
-                    column_count=nx, cell_size=Vector2(x=px, y=px), row_stride=4 * nx, cell_stride=4,
-                    fields=[PackedElementField(name="height", offset=0,
-                                               type=PackedElementFieldNumericType.Float32)],
-                    data=h.tobytes())
-
-    def _entity(self, ident: str, t: float | None, **primitives):
-        from foxglove.messages import SceneEntity
-
-        return SceneEntity(timestamp=self._stamp(t), frame_id="layout", id=ident, **primitives)
-
-    def _bodies_scene(self, bodies, prefix: str, colour, t: float | None, delete=()):
-        """Particles as spheres, rods and wires as boxes along their axis, with their ids."""
-        from foxglove.messages import (Color, CubePrimitive, SceneEntityDeletion, SceneUpdate,
-                                       SpherePrimitive, TextPrimitive, Vector3)
-
-        col = Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3])
-        entities = []
-        for b in bodies:
-            try:
-                x, y = (float(v) for v in b["at"])
-                d = float(b["diameter"])
-            except (KeyError, TypeError, ValueError):
-                continue
-            text = TextPrimitive(pose=_pose(x, y, d), billboard=True, font_size=12.0, scale_invariant=True,
-                                 color=col, text=str(b.get("id", "")))
-            if b.get("length") is not None and b.get("angle") is not None:
-                shape = {"cubes": [CubePrimitive(pose=_pose(x, y, d / 2, float(b["angle"])),
-                                                 size=Vector3(x=float(b["length"]), y=d, z=d), color=col)]}
-            else:
-                shape = {"spheres": [SpherePrimitive(pose=_pose(x, y, d / 2), size=Vector3(x=d, y=d, z=d),
-                                                     color=col)]}
-            entities.append(self._entity(f"{prefix}:{b.get('id')}", t, texts=[text], **shape))
-        deletions = [SceneEntityDeletion(timestamp=self._stamp(t), id=f"{prefix}:{i}") for i in delete]
-        return SceneUpdate(entities=entities, deletions=deletions)
-
-    def _paths_scene(self, paths, colour, t: float | None, thickness: float = 2.0, clear: bool = False):
-        """Tip paths as line strips; ``clear``: first delete every path the topic drew
-        before (a replan's paths replace the last plan's)."""
-        from foxglove.messages import (Color, LinePrimitive, LinePrimitiveLineType, SceneEntityDeletion,
-                                       SceneEntityDeletionType, SceneUpdate)
-
-        col = Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3])
-        entities = []
-        for ident, pts in paths:
-            pts = [p for p in pts if len(p) >= 2]
-            if len(pts) < 2:
-                continue
-            line = LinePrimitive(type=LinePrimitiveLineType.LineStrip, pose=_pose(0.0, 0.0, 0.0),
-                                 thickness=thickness, scale_invariant=True,
-                                 points=[_point(p[0], p[1], 1.0) for p in pts], color=col)
-            entities.append(self._entity(ident, t, lines=[line]))
-        deletions = ([SceneEntityDeletion(timestamp=self._stamp(t), type=SceneEntityDeletionType.All)]
-                     if clear else [])
-        return SceneUpdate(entities=entities, deletions=deletions)
-
-    def _layout_scene(self, layout):
-        """Slots as outlines (circles, capsules), keep-outs, and the working area."""
-        from foxglove.messages import Color, LinePrimitive, LinePrimitiveLineType, SceneUpdate, TextPrimitive
-
-        def loop(pts, colour):
-            return LinePrimitive(type=LinePrimitiveLineType.LineLoop, pose=_pose(0.0, 0.0, 0.0), thickness=2.0,
-                                 scale_invariant=True, points=[_point(x, y, 0.0) for x, y in pts],
-                                 color=Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3]))
-
-        w, h = layout.area
-        entities = [self._entity("area", 0.0, lines=[loop([(0, 0), (w, 0), (w, h), (0, h)], _AREA)])]
-        for tg in layout.targets:
-            ring = tg.geometry().buffer(tg.radius, quad_segs=12).exterior.coords[:-1]
-            label = TextPrimitive(pose=_pose(tg.at[0], tg.at[1], 0.0), billboard=True, font_size=12.0,
-                                  scale_invariant=True, text=tg.id,
-                                  color=Color(r=_TARGET[0], g=_TARGET[1], b=_TARGET[2], a=1.0))
-            entities.append(self._entity(f"slot:{tg.id}", 0.0, lines=[loop(ring, _TARGET)], texts=[label]))
-        for i, k in enumerate(layout.keepouts, 1):
-            entities.append(self._entity(f"keepout:{i}", 0.0, lines=[loop(k.polygon, _KEEPOUT)]))
-        return SceneUpdate(entities=entities)
+        """The Foxglove timestamp of instrument time ``t`` (None: the latest seen)."""
+        return timestamp(nanoseconds(self._t if t is None else t))
 
 
 def open_run_log(path=None, *, live_port: int | None = None, **kwargs) -> RunLog:
@@ -482,21 +376,6 @@ def open_run_log(path=None, *, live_port: int | None = None, **kwargs) -> RunLog
         if live_port is None:
             raise
         raise InputError(None, "--live-port", f"cannot serve on 127.0.0.1:{live_port}: {exc}") from None
-
-
-def _point(x: float, y: float, z: float):
-    from foxglove.messages import Point3
-
-    return Point3(x=float(x), y=float(y), z=float(z))
-
-
-def _pose(x: float, y: float, z: float, angle_deg: float = 0.0):
-    """A pose at (x, y, z) turned by ``angle_deg`` about +z."""
-    from foxglove.messages import Pose, Quaternion, Vector3
-
-    half = math.radians(angle_deg) / 2
-    return Pose(position=Vector3(x=float(x), y=float(y), z=float(z)),
-                orientation=Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)))
 
 
 def command_line() -> str:

@@ -18,9 +18,14 @@ from typing import Any
 
 from nanoasm.bodies import Body
 from nanoasm.errors import InputError
-from nanoasm.executor.runlog import FAILED_VERDICTS
+from nanoasm.executor.documents import (CHANNELS, CHECKPOINT, DRIFT, ENVIRONMENT, FAILED_VERDICTS, PLAN, PUSH,
+                                        RESULT, STOP, CheckpointDoc, DocumentError, DriftDoc, PushDoc, StopDoc,
+                                        body_from_stored)
+from nanoasm.executor.ledger import ACTIVITIES
+from nanoasm.schema import Table
 
-ACTIVITIES = ("full_scan", "local_scan", "push", "travel")
+#: The dry-run harness's channel of the simulated truth (:mod:`nanoasm.dryrun`).
+TRUTH = "/sim/truth"
 
 
 @dataclass(frozen=True)
@@ -41,7 +46,7 @@ class Review:
     kind: str                                  # "dry-run" or "run"
     metadata: dict[str, str]
     end_time: float | None
-    stop: dict | None = None
+    stop: StopDoc | None = None
     layout: Any = None
     source: str = "belief"                     # what slot errors are measured against
     slots: list[SlotRow] = field(default_factory=list)
@@ -57,114 +62,70 @@ class Review:
     truth_initial: list[Body] = field(default_factory=list)
     truth_final: list[Body] = field(default_factory=list)
     paths: list[tuple[list, str]] = field(default_factory=list)   # (tip path, verdict)
+    notes: list[str] = field(default_factory=list)        # messages skipped, and why
 
     @property
     def filled(self) -> int:
         return sum(s.filled for s in self.slots)
 
 
-def _body(d: Any) -> Body | None:
-    try:
-        angle, length = d.get("angle"), d.get("length")
-        elongated = d["kind"] in ("rod", "wire")
-        return Body(str(d["id"]), str(d["kind"]), (float(d["at"][0]), float(d["at"][1])), float(d["diameter"]),
-                    float(angle) if elongated else None, float(length) if elongated else None)
-    except (AttributeError, KeyError, TypeError, ValueError, IndexError):
-        return None
-
-
-def _bodies(docs: Any) -> list[Body]:
-    return [b for b in map(_body, docs if isinstance(docs, list) else ()) if b is not None]
-
-
-def _pairs(docs: Any, a: str, b: str) -> list[tuple[str, str]]:
-    out = []
-    for d in docs if isinstance(docs, list) else ():
-        if isinstance(d, dict) and a in d and b in d:
-            out.append((str(d[a]), str(d[b])))
-        elif isinstance(d, (list, tuple)) and len(d) == 2:
-            out.append((str(d[0]), str(d[1])))
-    return out
-
-
 def review(path: str | os.PathLike) -> Review:
-    """Read and summarise a run log; raises InputError for a file that is no run log."""
+    """Read and summarise a run log; raises InputError for a file that is no run log.
+    Messages that are not what their channel holds are skipped, each with a note."""
     from nanoasm.cad.layout import layout_from_dict
     from nanoasm.executor.logread import read_log
 
     log = read_log(path)
     meta = dict(log.metadata.get("nanoasm", {}))
-    kind = "dry-run" if "dry-run" in log.metadata or log.topic("/sim/truth") else meta.get("kind", "run")
+    kind = "dry-run" if "dry-run" in log.metadata or log.topic(TRUTH) else meta.get("kind", "run")
     rev = Review(str(path), log.complete, log.problem, kind, meta, log.end_time)
     if "nanoasm" not in log.metadata and log.complete:
         raise InputError(str(path), None, "an MCAP file, but not a nanoasm run log (no 'nanoasm' metadata)")
     layout_doc = log.attachment_json("layout.json")
-    if isinstance(layout_doc, dict):
+    if layout_doc is not None:
         try:
             rev.layout = layout_from_dict(layout_doc, "layout.json")
-        except (InputError, ValueError):
-            rev.layout = None
-    stop = log.last("/stop")
-    rev.stop = stop.data if stop is not None and isinstance(stop.data, dict) else None
-
-    # the executor's belief, replayed: identified objects, then pushes and checkpoints
-    env = log.last("/environment")
-    rev.initial = _bodies(env.data.get("objects")) if env is not None and isinstance(env.data, dict) else []
-    belief = {b.id: b for b in rev.initial}
-    lost: set[str] = set()
-    checkpoint = None
-    for m in log.messages:
-        if not isinstance(m.data, dict):
-            continue
-        if m.topic == "/push":
-            b = _body(m.data.get("belief"))
-            if b is not None:
-                belief[b.id] = b
-            op = m.data.get("op") if isinstance(m.data.get("op"), dict) else {}
-            rev.paths.append((op.get("tip_path") or [], str(m.data.get("verdict", ""))))
-        elif m.topic == "/checkpoint":
-            checkpoint = m.data
-            bd = m.data.get("belief") if isinstance(m.data.get("belief"), dict) else {}
-            belief = {b.id: b for b in _bodies(bd.get("objects"))} or belief
-            lost = set(bd.get("lost") or ())
-        elif m.topic == "/drift":
-            _drift_row(rev, m.t, m.data)
-    rev.final = [b for oid, b in belief.items() if oid not in lost]
+        except (InputError, ValueError, TypeError) as err:
+            rev.notes.append(f"layout.json skipped: {err}")
+    docs = log.documents(ENVIRONMENT, PLAN, PUSH, CHECKPOINT, DRIFT, RESULT, STOP, notes=rev.notes)
+    last = {topic: doc for topic, doc in docs}
+    rev.stop = last.get(STOP)
+    envs = [doc for topic, doc in docs if topic == ENVIRONMENT]
+    rev.initial = list(envs[-1].objects) if envs else []
+    pushes: list[PushDoc] = [doc for topic, doc in docs if topic == PUSH]
+    rev.paths = [(list(p.op.tip_path), p.verdict) for p in pushes]
+    ledger, lost = _replay(rev, docs)
 
     # what the run did: its result when it got that far, else the last checkpoint
-    result = log.last("/result")
-    res = result.data if result is not None and isinstance(result.data, dict) else None
-    plan = log.last("/plan")
-    plan_doc = plan.data if plan is not None and isinstance(plan.data, dict) else {}
-    source = res if res is not None else plan_doc
-    assignment = _pairs(source.get("assignment"), "target", "object")
-    rev.unfilled = _pairs(source.get("unfilled"), "target", "reason")
-    counts = (res or checkpoint or {}).get("counts") or {}
-    rev.pushes = int(counts.get("pushes", len(rev.paths))) if isinstance(counts, dict) else len(rev.paths)
-    failed = [m for m in log.topic("/push") if isinstance(m.data, dict) and m.data.get("verdict") in FAILED_VERDICTS]
-    rev.failed_pushes = int(counts.get("failed_pushes", len(failed))) if isinstance(counts, dict) else len(failed)
+    res, plan = last.get(RESULT), last.get(PLAN)
+    source = res if res is not None else plan
+    assignment = [(a.target, a.object) for a in source.assignment] if source is not None else []
+    rev.unfilled = [(u.target, u.reason) for u in source.unfilled] if source is not None else []
+    counts = res.counts if res is not None else ledger.counts if ledger is not None else {}
+    failed = [p for p in pushes if p.failed]
+    rev.pushes = int(counts.get("pushes", len(rev.paths)))
+    rev.failed_pushes = int(counts.get("failed_pushes", len(failed)))
     if res is not None:
-        rev.failures = _pairs(res.get("failures"), "object", "cause")
+        rev.failures = list(res.failures)
     else:
         rev.failures = [(str(o), "lost") for o in sorted(lost)]
-        rev.failures += [(str((m.data.get("op") or {}).get("object")), str(m.data["verdict"])) for m in failed]
-    times = (res or checkpoint or {}).get("times") or {}
-    rev.times = {a: float(times.get(a, 0.0)) for a in ACTIVITIES} if isinstance(times, dict) else {}
+        rev.failures += [(p.op.object, p.verdict) for p in failed]
+    times = res.times if res is not None else ledger.times if ledger is not None else {}
+    rev.times = {a: float(times.get(a, 0.0)) for a in ACTIVITIES}
     starts = [m.t for m in log.topic("/events")]
-    if res is not None and isinstance(res.get("epoch"), (int, float)):
-        starts.append(float(res["epoch"]))
+    if res is not None:
+        starts.append(res.epoch)
     if starts and rev.end_time is not None:
         rev.total_time = rev.end_time - min(starts)
 
     # slots: against the simulated truth when the harness logged it, else the last belief
-    truth = {m.data.get("phase"): m.data for m in log.topic("/sim/truth") if isinstance(m.data, dict)}
+    truth = _truth(log, rev.notes)
     final = {b.id: b for b in rev.final}
     if "initial" in truth:
-        rev.truth_initial = _bodies(truth["initial"].get("objects"))
+        rev.truth_initial = truth["initial"][0]
     if "final" in truth:
-        rev.truth_final = _bodies(truth["final"].get("objects"))
-        ids = truth["final"].get("ids") if isinstance(truth["final"].get("ids"), dict) else {}
-        assignment = [(t, str(ids.get(o, o))) for t, o in assignment]
+        rev.truth_final, ids = truth["final"]
+        assignment = [(t, ids.get(o, o)) for t, o in assignment]
         final = {b.id: b for b in rev.truth_final}
         rev.source = "simulated truth"
     if rev.layout is not None:
@@ -172,15 +133,58 @@ def review(path: str | os.PathLike) -> Review:
     return rev
 
 
-def _drift_row(rev: Review, t: float, doc: dict) -> None:
+def _replay(rev: Review, docs: list[tuple[str, Any]]):
+    """The executor's belief, replayed: the identified objects, then pushes and checkpoints
+    (``rev.final``), and the drift estimates (``rev.drift``). Returns the last checkpoint's
+    ledger (None: no checkpoint) and the objects lost by then."""
+    belief = {b.id: b for b in rev.initial}
+    lost: set[str] = set()
+    ledger = None
+    for topic, doc in docs:
+        if topic == PUSH:
+            belief[doc.belief.id] = doc.belief
+        elif topic == CHECKPOINT:
+            read = _checkpoint(doc, rev.notes)
+            if read is not None:
+                b, ledger = read
+                belief = dict(b.objects) or belief
+                lost = set(b.lost)
+        elif topic == DRIFT:
+            rev.drift.append(_drift_row(doc))
+    rev.final = [b for oid, b in belief.items() if oid not in lost]
+    return ledger, lost
+
+
+def _checkpoint(doc: CheckpointDoc, notes: list[str]):
+    """A checkpoint's belief and ledger, or None (with a note) when its state lacks them."""
     try:
-        dx, dy = (float(v) for v in doc["offset"])
-        cov = doc.get("cov")
-        sx, sy = (math.sqrt(max(float(cov[0][0]), 0.0)), math.sqrt(max(float(cov[1][1]), 0.0))) if cov else \
-            (math.nan, math.nan)
-    except (KeyError, TypeError, ValueError, IndexError):
-        return
-    rev.drift.append((float(doc.get("t", t)), dx, dy, sx, sy))
+        return doc.belief(), doc.ledger()
+    except DocumentError as err:
+        notes.append(f"{CHANNELS[CHECKPOINT]} at t = {doc.t:.3f} s skipped: {err}")
+        return None
+
+
+def _drift_row(doc: DriftDoc) -> tuple[float, float, float, float, float]:
+    """(t, dx, dy, sx, sy): the offset and its standard deviations (NaN: no covariance)."""
+    dx, dy = doc.offset
+    sx, sy = ((math.sqrt(max(doc.cov[0][0], 0.0)), math.sqrt(max(doc.cov[1][1], 0.0))) if doc.cov is not None
+              else (math.nan, math.nan))
+    return doc.t, dx, dy, sx, sy
+
+
+def _truth(log, notes: list[str]) -> dict[str, tuple[list[Body], dict[str, str]]]:
+    """The harness's simulated truth by phase: the true bodies and which identified object
+    each one is (identified id -> scene id)."""
+    out = {}
+    for m in log.topic(TRUTH):
+        try:
+            t = Table(m.data, "truth document")
+            ids = t.table("ids", optional=True)
+            out[t.string("phase")] = ([body_from_stored(bt) for bt in t.tables("objects")],
+                                      {} if ids is None else {k: ids.string(k) for k in ids.data})
+        except (InputError, ValueError) as err:
+            notes.append(f"{TRUTH} at t = {m.t:.3f} s skipped: {err}")
+    return out
 
 
 def _slots(layout, assignment: list[tuple[str, str]], final: dict[str, Body]) -> list[SlotRow]:
@@ -211,8 +215,10 @@ def print_review(rev: Review, console=None) -> None:
     table = RichTable(title=title, show_header=False)
     if not rev.complete:
         table.add_row("[bold red]incomplete[/]", _incomplete(rev))
-    elif rev.stop is not None and rev.stop.get("state") != "done":
-        table.add_row("[bold red]stopped[/]", f"{rev.stop.get('state')}: {rev.stop.get('reason')}")
+    elif rev.stop is not None and rev.stop.state != "done":
+        table.add_row("[bold red]stopped[/]", f"{rev.stop.state}: {rev.stop.reason}")
+    for note in rev.notes:
+        table.add_row("[bold red]skipped[/]", note)
     for k in ("strategy", "seed", "command", "resumed_from"):
         if rev.metadata.get(k):
             table.add_row(k.replace("_", " "), rev.metadata[k])

@@ -8,6 +8,7 @@ from dataclasses import replace
 from nanoasm.cad.layout import load_layout
 from nanoasm.dryrun import dry_run
 from nanoasm.examples import path as example
+from nanoasm.executor.documents import FULL_SCAN, Document, as_dict
 from nanoasm.executor.runlog import RunLog, to_json
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.world.scene import load_scene
@@ -26,9 +27,9 @@ class Recorder:
     def __init__(self):
         self.docs: list[tuple[str, object]] = []
 
-    def __call__(self, topic: str, doc: dict) -> None:
-        if topic != "full_scan":
-            self.docs.append((topic, json.loads(to_json(doc))))
+    def __call__(self, topic: str, doc: Document | dict) -> None:
+        if topic != FULL_SCAN:
+            self.docs.append((topic, json.loads(to_json(as_dict(doc)))))
 
     def topic(self, name: str) -> list:
         return [d for t, d in self.docs if t == name]

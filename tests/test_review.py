@@ -116,3 +116,25 @@ def test_dry_run_with_a_bad_log_name_writes_nothing(tmp_path, capsys):
     assert main(["dry-run", str(tmp_path / "s.toml"), str(tmp_path / "l.toml"), "--log", str(bad)]) == 1
     assert "run log must end in .mcap" in capsys.readouterr().err
     assert not bad.exists()
+
+
+def test_a_malformed_message_is_skipped_with_a_note(logged, tmp_path, capsys):
+    """A push without its belief: review leaves it out and says so; read strictly, it is
+    one error naming the file, the channel and the key."""
+    from nanoasm.errors import InputError
+    from nanoasm.executor.documents import PUSH
+    from nanoasm.executor.logread import read_log
+
+    pushes = [m.data for m in read_log(logged[0]).topic("/push")]
+    bad = tmp_path / "bad.mcap"
+    log = RunLog(bad, metadata={"kind": "run"})
+    log(PUSH, pushes[0])
+    log(PUSH, {k: v for k, v in pushes[1].items() if k != "belief"})
+    log.close()
+    rev = review(bad)
+    assert rev.complete and len(rev.paths) == 1 and rev.pushes == 1
+    assert len(rev.notes) == 1 and "/push at t =" in rev.notes[0] and "push document: belief: missing" in rev.notes[0]
+    assert main(["review", str(bad)]) == 0
+    assert "skipped" in capsys.readouterr().out
+    with pytest.raises(InputError, match=r"bad.mcap: /push: at t = .*: push document: belief: missing required key"):
+        read_log(bad).documents(PUSH)

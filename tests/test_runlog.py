@@ -18,6 +18,9 @@ from runlogkit import kill_when, logged_dry_run, particle_bowtie
 from nanoasm.cad.layout import layout_from_dict
 from nanoasm.dryrun import TRUTH_TOPICS
 from nanoasm.errors import InputError
+from nanoasm.executor.documents import (CHANNELS, CHECKPOINT, DAC, DRIFT, ENVIRONMENT, EVENT, PLAN, PUSH, RESULT,
+                                        SCAN_LINE, STOP, CheckpointDoc, DriftDoc, EventDoc, PushDoc, StopDoc,
+                                        document_from_dict)
 from nanoasm.executor.logread import last_checkpoint, read_log
 from nanoasm.executor.runlog import TOPICS, RunLog, open_run_log
 from nanoasm.review import review
@@ -42,19 +45,20 @@ def test_every_topic_is_written_and_read_back(logged):
         assert msgs, f"nothing on {topic}"
         assert all(m.schema == schema for m in msgs)
     # the JSON topics hold exactly what the procedure emitted
-    for engine_topic, topic in (("environment", "/environment"), ("plan", "/plan"), ("push", "/push"),
-                                ("drift", "/drift"), ("checkpoint", "/checkpoint"), ("result", "/result"),
-                                ("stop", "/stop")):
+    for engine_topic in (ENVIRONMENT, PLAN, PUSH, DRIFT, CHECKPOINT, RESULT, STOP):
+        topic = CHANNELS[engine_topic]
         assert [m.data for m in log.topic(topic)] == rec.topic(engine_topic), topic
+        # and read back typed, each is the document sent
+        assert [d.to_dict() for _, d in log.documents(engine_topic)] == rec.topic(engine_topic), topic
     # sampled topics to 1e-6
-    for engine_topic, topic, key in (("scan_line", "/local_scan", "heights"), ("dac", "/dac", "s_n")):
-        logged_docs, sent = [m.data for m in log.topic(topic)], rec.topic(engine_topic)
+    for engine_topic, key in ((SCAN_LINE, "heights"), (DAC, "s_n")):
+        logged_docs, sent = [m.data for m in log.topic(CHANNELS[engine_topic])], rec.topic(engine_topic)
         assert len(logged_docs) == len(sent) and [set(d) for d in logged_docs] == [set(d) for d in sent]
         for a, b in zip(logged_docs, sent):
             assert a[key] == pytest.approx(b[key], abs=1e-6) and a["t"] == pytest.approx(b["t"], abs=1e-6)
     # Foxglove messages decode to what was logged
     texts = [m.data.message for m in log.topic("/events")]
-    assert [d["text"] for d in rec.topic("event")] == texts[:-1] and texts[-1] == "run done: completed"
+    assert [d["text"] for d in rec.topic(EVENT)] == texts[:-1] and texts[-1] == "run done: completed"
     grid = log.last("/scan").data
     rows = len(grid.data) // grid.row_stride
     assert grid.column_count * grid.cell_size.x == pytest.approx(5000, rel=0.01) and rows == grid.column_count
@@ -102,8 +106,9 @@ def test_attachments_and_metadata(logged):
 def test_the_last_checkpoint_comes_back_losslessly(logged):
     path, _, rec, _ = logged
     cp = last_checkpoint(path)
-    assert cp == rec.topic("checkpoint")[-1]
-    assert {"remaining", "belief", "counts", "times", "pushed", "drift"} <= set(cp)
+    assert isinstance(cp, CheckpointDoc) and cp.to_dict() == rec.topic(CHECKPOINT)[-1]
+    assert {"remaining", "belief", "counts", "times", "pushed", "drift"} <= set(cp.to_dict())
+    assert cp.ledger().counts == cp.state["counts"] and cp.belief().objects
 
 
 def test_the_channel_list_is_stable(logged):
@@ -181,14 +186,15 @@ def test_bad_log_options_are_input_errors(tmp_path):
 
 def test_a_failed_run_closes_its_log_without_waiting_for_the_truth(tmp_path):
     log = RunLog(tmp_path / "r.mcap", truth=True)
-    log("event", {"t": 1.0, "level": "info", "text": "started"})
-    log("stop", {"state": "failed", "reason": "RuntimeError: boom"})
+    log(EVENT, EventDoc(1.0, "info", "started"))
+    log(STOP, StopDoc("failed", "RuntimeError: boom"))
     log.close()
     assert log._closed
     read = read_log(tmp_path / "r.mcap")
-    assert read.complete and read.last("/stop").data["state"] == "failed"
+    assert read.complete and read.documents(STOP) == [(STOP, StopDoc("failed", "RuntimeError: boom"))]
+    assert [m.data.message for m in read.topic("/events")] == ["started", "run failed: RuntimeError: boom"]
     log.close()                                 # idempotent
-    log("event", {"t": 2.0, "level": "info", "text": "ignored after close"})
+    log(EVENT, EventDoc(2.0, "info", "ignored after close"))
 
 
 def test_a_killed_dry_run_leaves_a_readable_prefix(tmp_path):
@@ -235,8 +241,8 @@ def test_the_live_server_serves_a_client_on_localhost():
             deadline = time.monotonic() + 10
             while len(got) < 2 and time.monotonic() < deadline:
                 # the server may not have registered the subscription yet: log until it arrives
-                log("event", {"t": 1.5, "level": "warn", "text": "hello live"})
-                log("drift", {"t": 1.5, "offset": [1.0, 2.0], "cov": [[1, 0], [0, 1]], "velocity": None})
+                log(EVENT, EventDoc(1.5, "warn", "hello live"))
+                log(DRIFT, DriftDoc(1.5, (1.0, 2.0), ((1.0, 0.0), (0.0, 1.0)), None))
                 try:
                     frame = ws.recv(timeout=0.5)
                 except TimeoutError:
@@ -249,3 +255,19 @@ def test_the_live_server_serves_a_client_on_localhost():
             assert b"hello live" in got[1]             # a foxglove.Log protobuf
     finally:
         log.close()
+
+
+def test_a_document_and_its_dict_are_logged_alike(logged, tmp_path):
+    """While producers still emit dicts, the run log takes both: the same records."""
+    _, _, rec, _ = logged
+    sent = rec.topic(PUSH)[0]
+    for name, doc in (("typed", PushDoc.from_dict(sent)), ("dict", sent)):
+        log = RunLog(tmp_path / f"{name}.mcap")
+        log(PUSH, doc)
+        log.close()
+    typed, plain = read_log(tmp_path / "typed.mcap"), read_log(tmp_path / "dict.mcap")
+    assert [m.data for m in typed.topic("/push")] == [m.data for m in plain.topic("/push")] == [sent]
+    for topic in ("/tip_paths", "/belief"):
+        wire = [[m.data.SerializeToString() for m in log.topic(topic)] for log in (typed, plain)]
+        assert wire[0] == wire[1] and wire[0], topic
+    assert document_from_dict(PUSH, sent).to_dict() == sent

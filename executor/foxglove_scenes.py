@@ -1,0 +1,157 @@
+"""What the run log draws for Foxglove: log lines, the full scan as a grid, and scenes of
+bodies, tip paths and the layout (Foxglove's well-known protobuf messages).
+
+Free functions from documents (dicts as the run log keeps them) to messages, stamped
+with the instrument time in nanoseconds; :class:`~nanoasm.executor.runlog.RunLog`
+writes them. Positions in nm in the layout frame (``frame_id`` ``"layout"``); Foxglove's
+3-D panel shows 1 nm as 1 m.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+#: Colours (r, g, b, a) of what the scenes draw.
+COLOURS = {
+    "target": (0.2, 0.6, 1.0, 1.0),
+    "keepout": (1.0, 0.3, 0.3, 1.0),
+    "area": (0.6, 0.6, 0.6, 1.0),
+    "object": (1.0, 0.8, 0.2, 1.0),
+    "belief": (0.3, 0.9, 0.4, 0.9),
+    "plan": (0.6, 0.6, 1.0, 0.6),
+    "ok": (0.2, 0.9, 0.3, 1.0),
+    "failed": (1.0, 0.2, 0.2, 1.0),
+    "scan": (1.0, 1.0, 1.0, 1.0),
+}
+
+_LEVELS = {"debug": "Debug", "info": "Info", "warn": "Warning", "warning": "Warning",
+           "error": "Error", "fatal": "Fatal"}
+
+
+def nanoseconds(t: float | None) -> int:
+    """A log time: instrument seconds in ns (0 for none, or before the start)."""
+    return int(round(max(float(t), 0.0) * 1e9)) if t is not None and math.isfinite(t) else 0
+
+
+def timestamp(ns: int):
+    from foxglove.messages import Timestamp
+
+    return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+def log_line(stamp, level: str, text: str):
+    """A ``foxglove.Log`` line; ``level`` debug, info, warn(ing), error or fatal."""
+    from foxglove.messages import Log, LogLevel
+
+    return Log(timestamp=stamp, level=getattr(LogLevel, _LEVELS.get(level, "Info")), message=text, name="nanoasm")
+
+
+def grid(doc: dict, stamp):
+    """The full scan (``height``, ``pixel_size``, ``origin``) as a float32 ``foxglove.Grid``."""
+    from foxglove.messages import (Grid, PackedElementField, PackedElementFieldNumericType, Pose,
+                                   Quaternion, Vector2, Vector3)
+
+    h = np.ascontiguousarray(np.asarray(doc["height"], dtype="<f4"))
+    ny, nx = h.shape
+    px = float(doc["pixel_size"])
+    ox, oy = (float(v) for v in doc.get("origin", (0.0, 0.0)))
+    return Grid(timestamp=stamp, frame_id="layout",
+                pose=Pose(position=Vector3(x=ox, y=oy, z=0.0), orientation=Quaternion(w=1.0)),
+                column_count=nx, cell_size=Vector2(x=px, y=px), row_stride=4 * nx, cell_stride=4,
+                fields=[PackedElementField(name="height", offset=0,
+                                           type=PackedElementFieldNumericType.Float32)],
+                data=h.tobytes())
+
+
+def bodies_scene(bodies, prefix: str, colour, stamp, delete=()):
+    """Bodies (``Body.to_dict()`` documents): particles as spheres, rods and wires as
+    boxes along their axis, with their ids, each as entity ``prefix:id``; the entities
+    ``prefix:id`` of ``delete`` removed."""
+    from foxglove.messages import (Color, CubePrimitive, SceneEntityDeletion, SceneUpdate,
+                                   SpherePrimitive, TextPrimitive, Vector3)
+
+    col = Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3])
+    entities = []
+    for b in bodies:
+        try:
+            x, y = (float(v) for v in b["at"])
+            d = float(b["diameter"])
+        except (KeyError, TypeError, ValueError):
+            continue
+        text = TextPrimitive(pose=_pose(x, y, d), billboard=True, font_size=12.0, scale_invariant=True,
+                             color=col, text=str(b.get("id", "")))
+        if b.get("length") is not None and b.get("angle") is not None:
+            shape = {"cubes": [CubePrimitive(pose=_pose(x, y, d / 2, float(b["angle"])),
+                                             size=Vector3(x=float(b["length"]), y=d, z=d), color=col)]}
+        else:
+            shape = {"spheres": [SpherePrimitive(pose=_pose(x, y, d / 2), size=Vector3(x=d, y=d, z=d),
+                                                 color=col)]}
+        entities.append(_entity(f"{prefix}:{b.get('id')}", stamp, texts=[text], **shape))
+    deletions = [SceneEntityDeletion(timestamp=stamp, id=f"{prefix}:{i}") for i in delete]
+    return SceneUpdate(entities=entities, deletions=deletions)
+
+
+def paths_scene(paths, colour, stamp, thickness: float = 2.0, clear: bool = False):
+    """Tip paths ``(entity id, points)`` as line strips; ``clear``: first delete every
+    path the topic drew before (a replan's paths replace the last plan's)."""
+    from foxglove.messages import (Color, LinePrimitive, LinePrimitiveLineType, SceneEntityDeletion,
+                                   SceneEntityDeletionType, SceneUpdate)
+
+    col = Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3])
+    entities = []
+    for ident, pts in paths:
+        pts = [p for p in pts if len(p) >= 2]
+        if len(pts) < 2:
+            continue
+        line = LinePrimitive(type=LinePrimitiveLineType.LineStrip, pose=_pose(0.0, 0.0, 0.0),
+                             thickness=thickness, scale_invariant=True,
+                             points=[_point(p[0], p[1], 1.0) for p in pts], color=col)
+        entities.append(_entity(ident, stamp, lines=[line]))
+    deletions = ([SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All)] if clear else [])
+    return SceneUpdate(entities=entities, deletions=deletions)
+
+
+def layout_scene(layout):
+    """Slots as outlines (circles, capsules), keep-outs, and the working area (at time 0)."""
+    from foxglove.messages import Color, LinePrimitive, LinePrimitiveLineType, SceneUpdate, TextPrimitive
+
+    def loop(pts, colour):
+        return LinePrimitive(type=LinePrimitiveLineType.LineLoop, pose=_pose(0.0, 0.0, 0.0), thickness=2.0,
+                             scale_invariant=True, points=[_point(x, y, 0.0) for x, y in pts],
+                             color=Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3]))
+
+    target = COLOURS["target"]
+    w, h = layout.area
+    entities = [_entity("area", timestamp(0), lines=[loop([(0, 0), (w, 0), (w, h), (0, h)], COLOURS["area"])])]
+    for tg in layout.targets:
+        ring = tg.geometry().buffer(tg.radius, quad_segs=12).exterior.coords[:-1]
+        label = TextPrimitive(pose=_pose(tg.at[0], tg.at[1], 0.0), billboard=True, font_size=12.0,
+                              scale_invariant=True, text=tg.id,
+                              color=Color(r=target[0], g=target[1], b=target[2], a=1.0))
+        entities.append(_entity(f"slot:{tg.id}", timestamp(0), lines=[loop(ring, target)], texts=[label]))
+    for i, k in enumerate(layout.keepouts, 1):
+        entities.append(_entity(f"keepout:{i}", timestamp(0), lines=[loop(k.polygon, COLOURS["keepout"])]))
+    return SceneUpdate(entities=entities)
+
+
+def _entity(ident: str, stamp, **primitives):
+    from foxglove.messages import SceneEntity
+
+    return SceneEntity(timestamp=stamp, frame_id="layout", id=ident, **primitives)
+
+
+def _point(x: float, y: float, z: float):
+    from foxglove.messages import Point3
+
+    return Point3(x=float(x), y=float(y), z=float(z))
+
+
+def _pose(x: float, y: float, z: float, angle_deg: float = 0.0):
+    """A pose at (x, y, z) turned by ``angle_deg`` about +z."""
+    from foxglove.messages import Pose, Quaternion, Vector3
+
+    half = math.radians(angle_deg) / 2
+    return Pose(position=Vector3(x=float(x), y=float(y), z=float(z)),
+                orientation=Quaternion(x=0.0, y=0.0, z=math.sin(half), w=math.cos(half)))
