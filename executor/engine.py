@@ -26,6 +26,8 @@ from typing import Any
 
 from nanoasm.instrument import Instrument
 
+from .documents import CHECKPOINT, EVENT, STOP, Document, EventDoc, StopDoc
+
 #: Commands a procedure may yield, and what each returns.
 COMMANDS = {
     "write": "SignalBlock of the streamed DAC chunk",
@@ -66,16 +68,16 @@ class Terminated(BaseException):
     """Raised in the main thread when the process receives SIGTERM."""
 
 
-Subscriber = Callable[[str, dict], None]
+Subscriber = Callable[[str, Document], None]
 
 
 class RunEngine:
     """Executes procedures against ``instrument`` for ``subscribers(topic, document)``.
 
-    Topics sent: ``event`` (``{"t", "level", "text"}``), ``checkpoint`` (the
-    procedure's state), any topic a procedure ``emit``\\ s, and ``stop``
-    (``{"state", "reason"}``) once, at the end. Subscribers with a ``close()`` method are
-    closed after ``stop``.
+    Topics sent (:mod:`.documents`): ``event`` (:class:`~.documents.EventDoc`),
+    ``checkpoint`` (the procedure's state), any topic a procedure ``emit``\\ s, and
+    ``stop`` (:class:`~.documents.StopDoc`) once, at the end. Subscribers with a
+    ``close()`` method are closed after ``stop``.
     """
 
     def __init__(self, instrument: Instrument, subscribers: list[Subscriber] | None = None):
@@ -91,7 +93,7 @@ class RunEngine:
     def subscribe(self, fn: Subscriber) -> None:
         self.subscribers.append(fn)
 
-    def _tell(self, topic: str, doc: dict) -> None:
+    def _tell(self, topic: str, doc: Document) -> None:
         for fn in self.subscribers:
             fn(topic, doc)
 
@@ -113,11 +115,11 @@ class RunEngine:
         if c == "park":
             return inst.park()
         if c == "checkpoint":
-            self._tell("checkpoint", msg.args[0] if msg.args else dict(msg.kwargs))
+            self._tell(CHECKPOINT, msg.args[0] if msg.args else dict(msg.kwargs))
             return None
         if c == "event":
             text = msg.args[0] if msg.args else ""
-            self._tell("event", {"t": inst.clock(), "level": msg.kwargs.get("level", "info"), "text": text})
+            self._tell(EVENT, EventDoc(inst.clock(), msg.kwargs.get("level", "info"), text))
             return None
         topic, doc = msg.args
         self._tell(topic, doc)
@@ -167,7 +169,7 @@ class RunEngine:
                 self.instrument.park()
             finally:
                 try:
-                    self._tell("stop", {"state": self.state.value, "reason": self.reason})
+                    self._tell(STOP, StopDoc(self.state.value, self.reason))
                 finally:
                     for fn in self.subscribers:
                         close = getattr(fn, "close", None)

@@ -8,6 +8,7 @@ import signal
 import numpy as np
 import pytest
 
+from nanoasm.executor.documents import CHECKPOINT, EVENT, STOP, EventDoc, StopDoc
 from nanoasm.executor.engine import Msg, RunEngine, RunState, Terminated
 from nanoasm.instrument import HeightImage, InstrumentConfig, SignalBlock, check_samples, ramp
 
@@ -88,8 +89,11 @@ def test_a_procedure_runs_and_the_instrument_is_parked():
     assert engine.state is RunState.DONE
     assert stage.parked == 1 and np.array_equal(stage.position(), stage.config.rest_codes())
     topics = [t for t, _ in rec.docs]
-    assert topics == ["event", "checkpoint", "stop"] and rec.closed
-    assert rec.docs[-1][1] == {"state": "done", "reason": "completed"}
+    assert topics == [EVENT, CHECKPOINT, STOP] and rec.closed
+    event = rec.docs[0][1]          # stamped with the instrument's clock after the move
+    assert event == EventDoc(event.t, "info", "moved") and 0.0 < event.t < stage.clock()
+    assert rec.docs[1][1] == {"done": 1}
+    assert rec.docs[-1][1] == StopDoc("done", "completed")
 
 
 def failing(stage, exc):
@@ -106,7 +110,7 @@ def test_errors_and_ctrl_c_still_park_and_close(exc, state):
         engine.run(failing(stage, exc))
     assert engine.state is state
     assert stage.parked == 1 and np.array_equal(stage.position(), stage.config.rest_codes())
-    assert rec.closed and rec.docs[-1][0] == "stop" and rec.docs[-1][1]["state"] == state.value
+    assert rec.closed and rec.docs[-1][0] == STOP and rec.docs[-1][1].state == state.value
 
 
 def test_sigterm_parks_and_the_old_handler_comes_back():

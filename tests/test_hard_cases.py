@@ -199,7 +199,7 @@ def test_a_stuck_push_along_the_cantilever_is_not_retried_forever():
             seen["plan"] += 1
         if topic == "event":
             for key in ("replanned", "gave up"):
-                seen[key] += doc["text"].startswith(key)
+                seen[key] += doc.text.startswith(key)
 
     out = dryrun.dry_run(*_stuck_case(), seed=1, options=ExecOptions(strategy="full"), subscribers=[watch])
     assert 1 <= out.report.counts.failed_pushes <= 10

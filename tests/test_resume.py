@@ -78,7 +78,7 @@ def test_a_resume_after_a_pause_widens_the_search_and_still_finishes():
     shifted = ShiftedClock(restarted, clock_shift(state, restarted.clock()))
     assert shifted.clock() == pytest.approx(kept["state"]["t"] + 600.0, abs=1.0)
     events: list[str] = []
-    resumed = RunEngine(shifted, [lambda t, d: events.append(d["text"]) if t == "event" else None]).run(
+    resumed = RunEngine(shifted, [lambda t, d: events.append(d.text) if t == "event" else None]).run(
         Assembly(layout, ExecOptions()).resume(shifted.config, state))
     assert any("resumed from the checkpoint after push" in e for e in events)
     assert len(resumed.assignment) == len(summary.assignment)
