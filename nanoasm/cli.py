@@ -11,7 +11,7 @@ import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated, NoReturn, Optional
 
 import typer
 
@@ -192,24 +192,41 @@ def scene_random(
         raise InputError(str(output), None, "output must end in .toml or .json")
     if seed < 0:
         raise InputError(None, "--seed", f"must not be negative, got {seed}")
-    if drift is not None and not (all(map(_finite, drift)) and _finite(random_walk) and random_walk >= 0):
-        raise InputError(None, "--drift", "velocity and --random-walk must be finite, random walk >= 0")
-    if height_noise is not None and not (_finite(height_noise) and height_noise >= 0):
-        raise InputError(None, "--height-noise", f"must be finite and >= 0, got {height_noise}")
+    drift_params = None if drift is None else _options(DriftParams, {"velocity": "--drift"},
+                                                       velocity=drift, random_walk=random_walk)
+    noise = None if height_noise is None else _options(NoiseParams, {"height_rms": "--height-noise"},
+                                                       height_rms=height_noise)
     spec = SceneSpec(
         area=area, particles=particles, rods=rods, obstacles=obstacles,
         particle_diameter=particle_diameter, rod_length=rod_length, rod_diameter=rod_diameter,
-        obstacle_size=obstacle_size, obstacle_height=obstacle_height, gap=gap,
-        drift=None if drift is None else DriftParams(drift, random_walk),
-        noise=None if height_noise is None else NoiseParams(height_noise),
+        obstacle_size=obstacle_size, obstacle_height=obstacle_height, gap=gap, drift=drift_params, noise=noise,
     )
     scene = random_scene(spec, seed)
     scene.save(output)
     print(f"{output}: written: {scene.summary()}")
 
 
-def _finite(x: float) -> bool:
-    return x == x and abs(x) != float("inf")
+def _number(option: str, value: float, **limits) -> None:
+    """A number option checked by the project's one check of a number; a bad one is the
+    usual one-line error naming the option."""
+    from nanoasm.param import check_number
+
+    def fail(problem: str) -> NoReturn:
+        raise InputError(None, option, problem)
+
+    check_number(value, fail, **limits)
+
+
+def _options(cls, names: dict[str, str] | None = None, **values):
+    """``cls(**values)``: an option class checked by its own declaration (``param()``); a
+    bad field is the usual one-line error naming its option (``names``, else ``--field-name``)."""
+    from nanoasm.param import ParamError
+
+    try:
+        return cls(**values)
+    except ParamError as err:
+        option = (names or {}).get(err.key) or "--" + str(err.key).replace("_", "-")
+        raise InputError(None, option, err.problem) from None
 
 
 # -- identification -----------------------------------------------------------------
@@ -233,8 +250,8 @@ def identify_cmd(
         raise InputError(str(output), None, "output must end in .json")
     for option, value in (("--cut", cut), ("--min-area", min_area), ("--pixel-size", pixel_size),
                           ("--tip-radius", tip_radius)):
-        if value is not None and not (_finite(value) and value > 0):
-            raise InputError(None, option, f"must be positive, got {value:g}")
+        if value is not None:
+            _number(option, value, positive=True)
     image = read_height_image(scan, pixel_size=pixel_size)
     env = identify(image, cut=cut, min_area=min_area, tip_radius=tip_radius)
     env.save(output)
@@ -271,15 +288,9 @@ def plan_cmd(
         raise InputError(str(output), None, "output must end in .json")
     if (env_file is None) == (scan is None):
         raise InputError(None, "--env/--scan", "give exactly one of --env ENV.json or --scan SCAN")
-    if planner not in PLANNERS:
-        raise InputError(None, "--planner", f"unknown planner {planner!r}; one of {', '.join(PLANNERS)}")
-    for option, value in (("--budget", budget), ("--tip-radius", tip_radius)):
-        if not (_finite(value) and value > 0):
-            raise InputError(None, option, f"must be positive, got {value:g}")
-    if not (_finite(margin) and margin >= 0):
-        raise InputError(None, "--margin", f"must not be negative, got {margin:g}")
-    if seed < 0:
-        raise InputError(None, "--seed", f"must not be negative, got {seed}")
+    _check_planner(planner)
+    options = _options(PlanOptions, tip_radius=tip_radius, margin=margin, planner=planner, budget=budget,
+                       seed=seed)
     layout = load_layout(layout_file)
     if env_file is not None:
         env = load_environment(env_file)
@@ -288,8 +299,6 @@ def plan_cmd(
         from nanoasm.world.readers import read_height_image
 
         env = identify(read_height_image(scan, pixel_size=pixel_size), tip_radius=tip_radius)
-    options = PlanOptions(tip_radius=tip_radius, margin=margin, planner=planner,
-                          budget=budget, seed=seed)
     plan, stats = _with_progress("planning", lambda progress: plan_assembly(layout, env, options, progress))
     plan.save(output)
     print(f"{output}: written: {len(plan.assignment)} of {len(layout.targets)} slot(s) assigned, "
@@ -320,7 +329,7 @@ def _with_progress(label: str, work):
         return work(progress)
 
 
-# -- dry-run --------------------------------------------------------------------------
+# -- dry-run and run ------------------------------------------------------------------
 
 LogFile = Annotated[Optional[Path], typer.Option("--log", help="Write the run log here (MCAP with Foxglove "
                                                  "schemas; nanoasm review reads it, Foxglove opens it).")]
@@ -344,25 +353,35 @@ def _check_run_options(strategy: str, report: Path | None) -> None:
         raise InputError(str(report), None, "report must end in .json")
 
 
+def _check_planner(planner: str) -> None:
+    from nanoasm.planner.options import PLANNERS
+
+    if planner not in PLANNERS:
+        raise InputError(None, "--planner", f"unknown planner {planner!r}; one of {', '.join(PLANNERS)}")
+
+
 @contextmanager
-def _run_logs(path: Path | None, live: bool, port: int, layout, metadata: dict, **options):
-    """The run log and live stream as a list of engine subscribers (empty without --log and
-    --live); closed on the way out, whatever happens. ``options`` go to the RunLog."""
-    if path is None and not live:
+def _run_progress(label: str):
+    """Engine subscribers showing how far the run is on a terminal (none otherwise), on a
+    line that starts with ``label`` ("dry-run" or "run")."""
+    from rich.console import Console
+
+    from nanoasm.executor.documents import CHECKPOINT, EVENT, as_dict
+
+    console = Console(stderr=True)
+    if not console.is_terminal:
         yield []
         return
-    from nanoasm.executor.runlog import command_line, open_run_log
-
-    log = open_run_log(path, live_port=port if live else None, layout=layout,
-                       metadata={**metadata, "command": command_line()}, **options)
-    if log.server is not None:
-        print(f"live: ws://127.0.0.1:{log.port} (Foxglove: Open connection > Foxglove WebSocket)", file=sys.stderr)
-    try:
-        yield [log]
-    finally:
-        log.close()
-        if path is not None:
-            print(f"{path}: written", file=sys.stderr)
+    with console.status(f"{label}: full scan") as status:
+        def follow(topic: str, doc) -> None:
+            if topic == EVENT:
+                status.update(f"{label}: {as_dict(doc)['text']}")
+            elif topic == CHECKPOINT:
+                d = as_dict(doc)
+                c = d.get("counts", {})
+                status.update(f"{label}: {c.get('pushes', 0)} push(es) done, "
+                              f"{len(d.get('remaining', []))} to go")
+        yield [follow]
 
 
 @app.command("dry-run")
@@ -383,66 +402,31 @@ def dry_run_cmd(
     resume: Resume = None,
 ) -> None:
     """Assemble LAYOUT in a simulated world holding SCENE, exactly as a real run would."""
-    from nanoasm.cad.layout import load_layout
-    from nanoasm.dryrun import dry_run
+    from nanoasm.dryrun import dry_run_files, resume_dry_run
     from nanoasm.examples import path as example
-    from nanoasm.executor.resume import resume_point, resumed_log_path
-    from nanoasm.simkeep import load_sim_state, sim_state_path
-    from nanoasm.executor.strategy import ExecOptions
-    from nanoasm.planner.options import PLANNERS, PlanOptions
-    from nanoasm.world.scene import load_scene
+    from nanoasm.harness import LogTo
+    from nanoasm.planner.options import PlanOptions
 
     _check_run_options(strategy, report)
+    log_to = LogTo(log, live, live_port)
     if resume is not None:
         if scene_file is not None or layout_file is not None:
             raise InputError(None, "--resume", "takes the scene and the layout from the log; give neither")
-        if not resume.is_file():
-            raise InputError(str(resume), None, "no such run log")
-        kept = load_sim_state(sim_state_path(resume))
-        point = resume_point(resume, "dry-run", at=float(kept["t"]))
-        meta = point.metadata
-        if point.scene is None:
-            raise InputError(str(resume), "scene.json", "the log has no scene attached")
-        strategy = point.state["strategy"]
-        seed = int(meta["seed"]) if meta.get("seed", "None") not in ("None", "") else None
-        log = log or resumed_log_path(resume)
-        scene_name, layout_name = meta.get("scene"), meta.get("layout")
-        options, plan_options = ExecOptions(strategy=strategy), PlanOptions(planner=planner, budget=budget,
-                                                                             seed=seed or 0)
-        meta = {**meta, "resumed_from": str(resume)}
-        with _run_logs(log, live, live_port, point.layout, meta, truth=True) as logs:
-            outcome = _with_run_progress(lambda subs: dry_run(
-                point.scene, point.layout, seed=seed, options=options, plan_options=plan_options,
-                subscribers=[*subs, *logs], scene_name=scene_name, layout_name=layout_name,
-                keep_sim=sim_state_path(log), resume=(point.state, kept)))
-        if report is not None:
-            outcome.report.save(report)
-        _print_summary(point.layout, outcome)
+        _check_planner(planner)
+        plan_options = _options(PlanOptions, planner=planner, budget=budget)
+        outcome, layout = resume_dry_run(resume, plan_options=plan_options, log=log_to, report=report,
+                                         progress=_run_progress("dry-run"))
+        _print_summary(layout, outcome)
         return
     if (scene_file is None) != (layout_file is None):
         raise InputError(None, "SCENE LAYOUT", "give both a scene and a layout, or neither for the example")
     scene_file = scene_file or example("bowtie_scene.toml")
     layout_file = layout_file or example("bowtie.toml")
-    if planner not in PLANNERS:
-        raise InputError(None, "--planner", f"unknown planner {planner!r}; one of {', '.join(PLANNERS)}")
-    if not (_finite(budget) and budget > 0):
-        raise InputError(None, "--budget", f"must be positive, got {budget:g}")
-    if seed is not None and seed < 0:
-        raise InputError(None, "--seed", f"must not be negative, got {seed}")
-    scene = load_scene(scene_file)
-    layout = load_layout(layout_file)
-    options = ExecOptions(strategy=strategy)
-    plan_options = PlanOptions(planner=planner, budget=budget, seed=seed or 0)
-    meta = {"kind": "dry-run", "strategy": strategy, "seed": seed, "scene": str(scene_file),
-            "layout": str(layout_file)}
-    with _run_logs(log, live, live_port, layout, meta, truth=True) as logs:
-        outcome = _with_run_progress(lambda subs: dry_run(
-            scene, layout, seed=seed, options=options, plan_options=plan_options, subscribers=[*subs, *logs],
-            scene_name=str(scene_file), layout_name=str(layout_file),
-            keep_sim=None if log is None else sim_state_path(log)))
-    rep = outcome.report
-    if report is not None:
-        rep.save(report)
+    _check_planner(planner)
+    plan_options = _options(PlanOptions, planner=planner, budget=budget, seed=seed or 0)
+    outcome, layout = dry_run_files(scene_file, layout_file, seed=seed, strategy=strategy,
+                                    plan_options=plan_options, log=log_to, report=report,
+                                    progress=_run_progress("dry-run"))
     _print_summary(layout, outcome)
     if report is not None:
         print(f"{report}: written")
@@ -462,82 +446,21 @@ def run_cmd(
     resume: Resume = None,
 ) -> None:
     """Assemble LAYOUT unattended on the instrument described by --instrument (NI-DAQmx)."""
-    from nanoasm.cad.layout import load_layout
-    from nanoasm.executor.assembly import Assembly
-    from nanoasm.executor.engine import RunEngine
-    from nanoasm.executor.instrument_file import load_instrument_config
-    from nanoasm.executor.nidaq import NiDaqInstrument
-    from nanoasm.executor.report import InstrumentTime, Report, WallTime
-    from nanoasm.executor.resume import ShiftedClock, clock_shift, resume_point, resumed_log_path
-    from nanoasm.executor.strategy import ExecOptions
+    from nanoasm.harness import LogTo
+    from nanoasm.run import run_files
 
     if instrument is None:
         raise InputError(None, "--instrument", "is required: the instrument file (nanoasm.instrument/1)")
     _check_run_options(strategy, report)
-    point = None
-    if resume is not None:
-        if layout_file is not None:
-            raise InputError(None, "--resume", "takes the layout from the log; give no LAYOUT")
-        point = resume_point(resume, "run")
-        layout, strategy = point.layout, point.state["strategy"]
-        layout_file = Path(point.metadata.get("layout", "layout.json"))
-        log = log or resumed_log_path(resume)
-    elif layout_file is None:
+    if resume is not None and layout_file is not None:
+        raise InputError(None, "--resume", "takes the layout from the log; give no LAYOUT")
+    if resume is None and layout_file is None:
         raise InputError(None, "LAYOUT", "is required (or --resume LOG)")
-    else:
-        layout = load_layout(layout_file)
-    config = load_instrument_config(instrument)
-    assembly = Assembly(layout, ExecOptions(strategy=strategy))
-    meta = {"kind": "run", "strategy": strategy, "layout": str(layout_file), "instrument": str(instrument)}
-    if resume is not None:
-        meta["resumed_from"] = str(resume)
-    suffix = instrument.suffix.lower()
-    attach = {"instrument" + suffix: ("application/" + suffix.lstrip("."), instrument.read_bytes())}
-    with (NiDaqInstrument(config) as hardware,
-          _run_logs(log, live, live_port, layout, meta, attachments=attach) as logs):
-        inst = hardware
-        if point is not None:       # the clock goes on from the stopped run's
-            inst = ShiftedClock(hardware, clock_shift(point.state, hardware.clock()))
-        t0 = inst.clock()
-        procedure = (assembly.resume(inst.config, point.state) if point is not None
-                     else assembly.procedure(inst.config))
-        summary = _with_run_progress(lambda subs: RunEngine(inst, [*subs, *logs]).run(procedure))
-        total = inst.clock() - t0
-    t = summary.times
-    from nanoasm.bodies import Body
-
-    def plain(o) -> Body:
-        return Body(o.id, o.kind, o.at, o.diameter, None if o.angle is None else o.angle % 180.0, o.length)
-
-    final = tuple(plain(o) for oid, o in summary.belief.objects.items() if oid not in summary.belief.lost)
-    rep = Report(None, str(layout_file), None, layout.targets,
-                 tuple(plain(o) for o in summary.env.objects), final, summary.assignment, tuple(summary.pushed),
-                 summary.unfilled, summary.counts,
-                 InstrumentTime(t["full_scan"], t["local_scan"], t["push"], t["travel"], total),
-                 WallTime(summary.wall["identify"], summary.wall["plan"], summary.wall["execute"],
-                          sum(summary.wall.values())))
-    if report is not None:
-        rep.save(report)
-    print(f"run: {len(summary.assignment)} of {len(layout.targets)} slot(s) assigned, "
-          f"{rep.counts.pushes} push(es), {rep.counts.failed_pushes} failed; {total / 60:.1f} min")
-
-
-def _with_run_progress(work):
-    """Run ``work(subscribers)`` with a progress line on a terminal."""
-    from rich.console import Console
-
-    console = Console(stderr=True)
-    if not console.is_terminal:
-        return work([])
-    with console.status("dry-run: full scan") as status:
-        def follow(topic: str, doc: dict) -> None:
-            if topic == "event":
-                status.update(f"dry-run: {doc['text']}")
-            elif topic == "checkpoint":
-                c = doc.get("counts", {})
-                status.update(f"dry-run: {c.get('pushes', 0)} push(es) done, "
-                              f"{len(doc.get('remaining', []))} to go")
-        return work([follow])
+    rep = run_files(instrument, layout_file, strategy=strategy, resume_from=resume,
+                    log=LogTo(log, live, live_port), report=report, progress=_run_progress("run"))
+    print(f"run: {len(rep.assignment)} of {len(rep.targets)} slot(s) assigned, "
+          f"{rep.counts.pushes} push(es), {rep.counts.failed_pushes} failed; "
+          f"{rep.instrument_time.total / 60:.1f} min")
 
 
 def _print_summary(layout, outcome) -> None:

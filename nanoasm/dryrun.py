@@ -1,8 +1,12 @@
 """Dry-runs: the real executor against the simulated AFM, and the report of what happened.
 
 This harness is the only place that reads the simulated truth (before and after the run,
-for the report); the executor itself sees the simulated AFM only through the
-``Instrument`` protocol, as it would see hardware.
+for the report and the run log's ``/sim/truth``); the executor itself sees the simulated
+AFM only through the ``Instrument`` protocol, as it would see hardware. Its twin for real
+runs is :mod:`nanoasm.run`; both report through :func:`nanoasm.harness.report_of`.
+:func:`dry_run` runs a scene and a layout; :func:`dry_run_files` and
+:func:`resume_dry_run` are the command line's, with the run log, the simulated world
+kept beside it for resuming (:mod:`nanoasm.simkeep`) and the report file.
 """
 
 from __future__ import annotations
@@ -10,24 +14,28 @@ from __future__ import annotations
 import math
 import os
 import time
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from dataclasses import dataclass
 
 from nanoasm.bodies import Body
-from nanoasm.cad.layout import Layout
+from nanoasm.cad.layout import Layout, load_layout
+from nanoasm.errors import InputError
 from nanoasm.executor.assembly import Assembly
-from nanoasm.executor.summary import RunSummary
 from nanoasm.executor.engine import RunEngine, Subscriber
-from nanoasm.executor.report import InstrumentTime, Report, WallTime
+from nanoasm.executor.report import Report
+from nanoasm.executor.resume import resume_point, resumed_log_path
 from nanoasm.executor.runlog import RunLog, to_json
 from nanoasm.executor.strategy import ExecOptions
+from nanoasm.executor.summary import RunSummary
+from nanoasm.harness import LogTo, plain, report_of, run_logs
 from nanoasm.planner import PlanOptions
-from nanoasm.planner.plan import Assignment
 from nanoasm.planner.assign import in_slot
-from nanoasm.simkeep import SimKeeper
-from nanoasm.world.scene import Scene
+from nanoasm.simkeep import SimKeeper, load_sim_state, sim_state_path
+from nanoasm.world.scene import Scene, load_scene
 from nanoasm.world.sim import SimulatedAFM
 
 
@@ -79,8 +87,7 @@ def _layout_frame(sim: SimulatedAFM, summary: RunSummary, bodies: tuple[Body, ..
     ``epoch``) less the layout origin the run chose."""
     ox, oy = sim.true_offset(summary.epoch)
     dx, dy = ox - summary.origin[0], oy - summary.origin[1]
-    return tuple(Body(b.id, b.kind, (b.at[0] + dx, b.at[1] + dy), b.diameter,
-                      None if b.angle is None else b.angle % 180.0, b.length) for b in bodies)
+    return tuple(plain(b, (b.at[0] + dx, b.at[1] + dy)) for b in bodies)
 
 
 def match_ids(found, truth: tuple[Body, ...], reach: float = 500.0) -> dict[str, str]:
@@ -128,8 +135,9 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     """Run the assembly of ``layout`` on a simulated AFM holding ``scene``.
 
     ``keep_sim``: keep the simulated world at every checkpoint in this file (for
-    resuming; see :mod:`nanoasm.executor.resume`). ``resume``: ``(checkpoint state,
-    kept world)`` of a stopped dry-run to go on with instead of starting afresh.
+    resuming; see :mod:`nanoasm.simkeep`). ``resume``: ``(checkpoint state, kept world)``
+    of a stopped dry-run to go on with instead of starting afresh. Run logs among the
+    ``subscribers`` get the scene and the truth from this harness.
     """
     seed = scene.seed if seed is None else seed
     seed = 0 if seed is None else seed
@@ -156,21 +164,62 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     initial = _layout_frame(sim, summary, initial_sample)
     final = _layout_frame(sim, summary, sim.truth())
     total = sim.clock() - start_clock
-    t = summary.times
     ids = match_ids(summary.env.objects, initial)
     for log in logs:
         _log_truth(log, initial, final, ids, sim.clock())
-    assignment = tuple(Assignment(a.target, ids.get(a.object, a.object)) for a in summary.assignment)
-    report = Report(
-        scene=scene_name, layout=layout_name, seed=seed,
-        targets=layout.targets, initial_objects=initial, final_objects=final,
-        assignment=assignment, pushed=tuple(ids.get(p, p) for p in summary.pushed),
-        unfilled=summary.unfilled,
-        counts=summary.counts,
-        instrument_time=InstrumentTime(t["full_scan"], t["local_scan"], t["push"], t["travel"], total),
-        wall_time=WallTime(summary.wall["identify"], summary.wall["plan"], summary.wall["execute"],
-                           time.perf_counter() - t_wall),
-    )
+    report = report_of(summary, layout, total, time.perf_counter() - t_wall, layout_name=layout_name,
+                       scene_name=scene_name, seed=seed, objects=(initial, final), ids=ids)
     filled, errors = filled_slots(layout, report.assignment, {b.id: b for b in final})
     return Outcome(report, summary, filled, errors)
 
+
+
+def dry_run_files(scene_file: Path, layout_file: Path, *, seed: int | None = None, strategy: str = "full",
+                  plan_options: PlanOptions | None = None, log: LogTo = LogTo(), report: Path | None = None,
+                  progress: AbstractContextManager | None = None) -> tuple[Outcome, Layout]:
+    """A dry-run as ``nanoasm dry-run`` makes it: the scene and layout files, the run log
+    (with the simulated world kept beside it, for resuming), the report file.
+    ``progress`` gives extra subscribers for the run (a progress line) while it runs.
+    Returns the outcome and the layout."""
+    scene = load_scene(scene_file)
+    layout = load_layout(layout_file)
+    meta = {"kind": "dry-run", "strategy": strategy, "seed": seed, "scene": str(scene_file),
+            "layout": str(layout_file)}
+    outcome = _logged(scene, layout, meta, log, report, progress, seed=seed,
+                      options=ExecOptions(strategy=strategy), plan_options=plan_options,
+                      scene_name=str(scene_file), layout_name=str(layout_file),
+                      keep_sim=None if log.path is None else sim_state_path(log.path))
+    return outcome, layout
+
+
+def resume_dry_run(stopped: Path, *, plan_options: PlanOptions | None = None, log: LogTo = LogTo(),
+                   report: Path | None = None,
+                   progress: AbstractContextManager | None = None) -> tuple[Outcome, Layout]:
+    """Go on with the dry-run logged in ``stopped`` from the checkpoint where its kept
+    world stands, with the scene, layout, strategy and seed of its log; logged to
+    ``log.path`` or else a new log beside the old one. Returns the outcome and the layout."""
+    if not stopped.is_file():
+        raise InputError(str(stopped), None, "no such run log")
+    kept = load_sim_state(sim_state_path(stopped))
+    point = resume_point(stopped, "dry-run", at=float(kept["t"]))
+    meta = point.metadata
+    if point.scene is None:
+        raise InputError(str(stopped), "scene.json", "the log has no scene attached")
+    seed = int(meta["seed"]) if meta.get("seed", "None") not in ("None", "") else None
+    log = replace(log, path=log.path or resumed_log_path(stopped))
+    outcome = _logged(point.scene, point.layout, {**meta, "resumed_from": str(stopped)}, log, report, progress,
+                      seed=seed, options=ExecOptions(strategy=point.state["strategy"]),
+                      plan_options=replace(plan_options or PlanOptions(), seed=seed or 0),
+                      scene_name=meta.get("scene"), layout_name=meta.get("layout"),
+                      keep_sim=sim_state_path(log.path), resume=(point.state, kept))
+    return outcome, point.layout
+
+
+def _logged(scene: Scene, layout: Layout, meta: dict, log: LogTo, report: Path | None,
+            progress: AbstractContextManager | None, **kwargs) -> Outcome:
+    """:func:`dry_run` with its run log, progress subscribers and report file."""
+    with run_logs(log, layout, meta, truth=True) as logs, progress or nullcontext([]) as shown:
+        outcome = dry_run(scene, layout, subscribers=[*shown, *logs], **kwargs)
+    if report is not None:
+        outcome.report.save(report)
+    return outcome

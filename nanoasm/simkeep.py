@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from nanoasm.errors import InputError
+from nanoasm.executor.documents import CHECKPOINT, as_dict
 from nanoasm.fileio import write_atomic
 
 SIM_SUFFIX = ".sim"
@@ -35,10 +36,10 @@ class SimKeeper:
     def __init__(self, path: str | os.PathLike, sim, extra: dict):
         self.path, self.sim, self.extra = Path(path), sim, extra
 
-    def __call__(self, topic: str, doc: dict) -> None:
-        if topic != "checkpoint":
+    def __call__(self, topic: str, doc) -> None:
+        if topic != CHECKPOINT:
             return
-        t = float(doc.get("t", self.sim.clock()))
+        t = float(as_dict(doc).get("t", self.sim.clock()))
         blob = pickle.dumps({"format": SIM_FORMAT, "t": t, "sim": self.sim, **self.extra},
                             protocol=pickle.HIGHEST_PROTOCOL)
         write_atomic(self.path, blob, mode=0o600)     # a pickle: for its owner alone

@@ -76,6 +76,9 @@ def test_scene_random_then_check(tmp_path, capsys):
     (["--particle-diameter", "50", "10"], "--particle-diameter: needs 0 < MIN <= MAX"),
     (["--seed", "-2"], "--seed: must not be negative"),
     (["--height-noise", "nan"], "--height-noise"),
+    (["--height-noise", "-1"], "--height-noise: must not be negative"),
+    (["--drift", "inf", "0"], "--drift: x must be finite"),
+    (["--drift", "0.1", "0", "--random-walk", "-0.1"], "--random-walk: must not be negative"),
     (["--particles", "many"], "Invalid value for '--particles'"),
 ])
 def test_scene_random_refusals(tmp_path, capsys, args, fragment):
@@ -152,6 +155,13 @@ def test_dry_run_refuses_bad_options(capsys, tmp_path):
     assert code == 1 and "give both a scene and a layout" in one_error_line(err)
     code, _, err = run(capsys, "dry-run", "--report", str(tmp_path / "r.txt"))
     assert code == 1 and "report must end in .json" in one_error_line(err)
+    for args, text in ((["--budget", "0"], "--budget: must be positive"),
+                       (["--budget", "nan"], "--budget: must be finite"),
+                       (["--seed", "-1"], "--seed: must not be negative"),
+                       (["--planner", "psychic"], "--planner: unknown planner"),
+                       (["--resume", "x.mcap", "--budget", "-2"], "--budget: must be positive")):
+        code, _, err = run(capsys, "dry-run", *args)
+        assert code == 1 and text in one_error_line(err)
 
 
 def test_ctrl_c_stops_a_dry_run_with_exit_130_and_one_line(tmp_path):
@@ -179,3 +189,43 @@ def test_outputs_are_written_with_the_usual_permissions(tmp_path):
         os.umask(mask)
     assert (tmp_path / "a.txt").stat().st_mode & 0o777 == 0o644
     assert (tmp_path / "b.bin").stat().st_mode & 0o777 == 0o600
+
+
+@pytest.mark.parametrize("label", ["dry-run", "run"])
+def test_the_progress_line_names_the_kind_of_run(monkeypatch, label):
+    from rich.console import Console
+
+    from nanoasm import cli
+
+    shown: list[str] = []
+
+    class Status:
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+        def update(self, text: str) -> None:
+            shown.append(text)
+
+    monkeypatch.setattr(Console, "is_terminal", property(lambda self: True))
+    monkeypatch.setattr(Console, "status", lambda self, text: shown.append(text) or Status())
+    with cli._run_progress(label) as subscribers:
+        for follow in subscribers:
+            follow("event", {"t": 1.0, "level": "info", "text": "push 1 of 6"})
+            follow("checkpoint", {"t": 2.0, "counts": {"pushes": 1}, "remaining": ["a", "b"]})
+    assert shown == [f"{label}: full scan", f"{label}: push 1 of 6", f"{label}: 1 push(es) done, 2 to go"]
+
+
+@pytest.mark.parametrize("args,fragment", [
+    (["--margin", "-1"], "--margin: must not be negative"),
+    (["--tip-radius", "0"], "--tip-radius: must be positive"),
+    (["--budget", "-inf"], "--budget: must be finite"),
+    (["--seed", "-3"], "--seed: must not be negative"),
+])
+def test_plan_refuses_bad_numbers_before_reading_files(tmp_path, capsys, args, fragment):
+    code, _, err = run(capsys, "plan", str(tmp_path / "none.toml"), "--env", str(tmp_path / "none.json"),
+                       "-o", str(tmp_path / "p.json"), *args)
+    assert code == 1 and fragment in one_error_line(err)
+    assert not (tmp_path / "p.json").exists()

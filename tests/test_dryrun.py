@@ -99,3 +99,54 @@ def test_injected_faults_are_survived(bowtie, fault):
     for oid, cause in out.summary.failures:
         if cause == "lost" and oid in out.summary.belief.lost:
             assert oid not in assigned
+
+
+def test_the_run_harness_reports_what_the_run_believes(runs, bowtie):
+    """nanoasm.run's harness in front of the simulated AFM (any Instrument will do): the
+    dry-run's very run, reported through the same constructor from what the run
+    identified and believes instead of from the truth."""
+    from nanoasm.run import run
+
+    scene, layout = bowtie
+    dry = runs["local-scan"]
+    rep = run(layout, simmod.SimulatedAFM(scene, seed=3), options=ExecOptions(strategy="local-scan"),
+              layout_name="particles.toml")
+    assert report_from_dict(json.loads(rep.dumps())) == rep
+    assert (rep.scene, rep.layout, rep.seed, rep.targets) == (None, "particles.toml", None, layout.targets)
+    assert rep.counts == dry.report.counts and rep.unfilled == dry.report.unfilled
+    assert rep.instrument_time == dry.report.instrument_time
+    summary = dry.summary
+    assert rep.assignment == summary.assignment and rep.pushed == tuple(summary.pushed)
+    assert [b.id for b in rep.initial_objects] == [o.id for o in summary.env.objects]
+    believed = {i: o for i, o in summary.belief.objects.items() if i not in summary.belief.lost}
+    assert {b.id: b.at for b in rep.final_objects} == {i: o.at for i, o in believed.items()}
+
+
+def test_the_run_harness_goes_on_from_a_checkpoint(bowtie):
+    """A run resumed by the harness from its second checkpoint (the state as a log gives
+    it) ends as the uninterrupted run; its instrument time is its own."""
+    import pickle
+
+    from nanoasm.executor.documents import as_dict
+    from nanoasm.executor.resume import ResumePoint
+    from nanoasm.executor.runlog import to_json
+    from nanoasm.run import run
+
+    scene, layout = bowtie
+    options = ExecOptions(strategy="local-scan")
+    sim = simmod.SimulatedAFM(scene, seed=3)
+    kept: dict = {}
+
+    def keep(topic: str, doc) -> None:
+        if topic in ("environment", "plan", "checkpoint"):
+            kept.setdefault(topic, []).append(json.loads(to_json(as_dict(doc))))
+        if topic == "checkpoint" and len(kept["checkpoint"]) == 2:
+            kept["sim"] = pickle.dumps(sim)
+
+    whole = run(layout, sim, options=options, subscribers=[keep])
+    state = {**kept["checkpoint"][1], "env": kept["environment"][0], "first_plan": kept["plan"][0]}
+    state.pop("saved_at", None)                 # resumed at once: no pause to add
+    resumed = run(layout, pickle.loads(kept["sim"]), options=options,
+                  resume=ResumePoint("stopped.mcap", state, layout, {}))
+    assert resumed.assignment == whole.assignment and resumed.counts == whole.counts
+    assert 0 < resumed.instrument_time.total < whole.instrument_time.total

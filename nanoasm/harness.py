@@ -1,0 +1,89 @@
+"""What the two harnesses share: the run log they write and the one way they make a report.
+
+A harness puts the executor (an :class:`~nanoasm.executor.assembly.Assembly` on a
+:class:`~nanoasm.executor.engine.RunEngine`) in front of an instrument and reports what
+happened: :mod:`nanoasm.run` in front of a real one, :mod:`nanoasm.dryrun` in front of
+the simulated AFM, whose truth it alone reads.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from nanoasm.bodies import Body
+from nanoasm.cad.layout import Layout
+from nanoasm.executor.report import InstrumentTime, Report, WallTime
+from nanoasm.executor.runlog import RunLog
+from nanoasm.executor.summary import RunSummary
+from nanoasm.planner.plan import Assignment
+
+
+@dataclass(frozen=True)
+class LogTo:
+    """Where a run is logged: an MCAP file (``path``), a live stream on 127.0.0.1 at
+    ``port`` (``live``), both or neither."""
+
+    path: Path | None = None
+    live: bool = False
+    port: int = 8765
+
+
+@contextmanager
+def run_logs(to: LogTo, layout: Layout, metadata: dict, **options) -> Iterator[list[RunLog]]:
+    """The run log and live stream as a list of engine subscribers (empty when ``to`` asks
+    for neither); closed on the way out, whatever happens. ``options`` go to the RunLog."""
+    if to.path is None and not to.live:
+        yield []
+        return
+    from nanoasm.executor.runlog import command_line, open_run_log
+
+    log = open_run_log(to.path, live_port=to.port if to.live else None, layout=layout,
+                       metadata={**metadata, "command": command_line()}, **options)
+    if log.server is not None:
+        print(f"live: ws://127.0.0.1:{log.port} (Foxglove: Open connection > Foxglove WebSocket)", file=sys.stderr)
+    try:
+        yield [log]
+    finally:
+        log.close()
+        if to.path is not None:
+            print(f"{to.path}: written", file=sys.stderr)
+
+
+def plain(o: Body, at: tuple[float, float] | None = None) -> Body:
+    """``o`` (an identified or simulated object) as the report holds it: a Body, a rod's
+    angle in [0, 180), moved to ``at`` when given."""
+    return Body(o.id, o.kind, o.at if at is None else at, o.diameter,
+                None if o.angle is None else o.angle % 180.0, o.length)
+
+
+def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall_total: float, *,
+              layout_name: str | None = None, scene_name: str | None = None, seed: int | None = None,
+              objects: tuple[tuple[Body, ...], tuple[Body, ...]] | None = None,
+              ids: dict[str, str] | None = None) -> Report:
+    """The report of a run from its summary: the one constructor of both harnesses.
+
+    A run reports the objects it identified and those it believes in at the end. A
+    dry-run gives what its truth tells instead: the true objects before and after
+    (``objects``, layout frame) and which true object each identified one is (``ids``:
+    identified id -> scene id), by which the assignment and the pushes are reported.
+    ``instrument_total`` and ``wall_total`` are the run's seconds on the instrument and
+    of this program.
+    """
+    ids = ids or {}
+    if objects is None:
+        belief = summary.belief
+        objects = (tuple(plain(o) for o in summary.env.objects),
+                   tuple(plain(o) for oid, o in belief.objects.items() if oid not in belief.lost))
+    t, w = summary.times, summary.wall
+    return Report(
+        scene=scene_name, layout=layout_name, seed=seed, targets=layout.targets,
+        initial_objects=objects[0], final_objects=objects[1],
+        assignment=tuple(Assignment(a.target, ids.get(a.object, a.object)) for a in summary.assignment),
+        pushed=tuple(ids.get(p, p) for p in summary.pushed), unfilled=summary.unfilled, counts=summary.counts,
+        instrument_time=InstrumentTime(t["full_scan"], t["local_scan"], t["push"], t["travel"], instrument_total),
+        wall_time=WallTime(w["identify"], w["plan"], w["execute"], wall_total),
+    )

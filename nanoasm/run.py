@@ -1,0 +1,80 @@
+"""Runs: the executor against a real instrument, and the report of what it did.
+
+The twin of :mod:`nanoasm.dryrun`. :func:`run` puts the executor in front of an open
+instrument (any :class:`~nanoasm.instrument.Instrument`) and reports what the run
+believes it did: a real run has no truth to compare with. :func:`run_files` is the
+command line's: the NI-DAQmx instrument of an instrument file, the run log, resuming a
+stopped run from its log, the report file. Both harnesses report through
+:func:`nanoasm.harness.report_of`.
+"""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager, nullcontext
+from dataclasses import replace
+from pathlib import Path
+
+from nanoasm.cad.layout import Layout, load_layout
+from nanoasm.executor.assembly import Assembly
+from nanoasm.executor.engine import RunEngine, Subscriber
+from nanoasm.executor.report import Report
+from nanoasm.executor.resume import ResumePoint, ShiftedClock, clock_shift, resume_point, resumed_log_path
+from nanoasm.executor.strategy import ExecOptions
+from nanoasm.harness import LogTo, report_of, run_logs
+from nanoasm.planner import PlanOptions
+
+
+def run(layout: Layout, instrument, *, options: ExecOptions | None = None,
+        plan_options: PlanOptions | None = None, subscribers: list[Subscriber] | None = None,
+        layout_name: str | None = None, resume: ResumePoint | None = None) -> Report:
+    """Assemble ``layout`` on ``instrument`` (open; parked whatever happens).
+
+    ``resume``: a stopped run's last checkpoint
+    (:func:`~nanoasm.executor.resume.resume_point`) to go on from; the instrument's clock
+    then goes on from the stopped run's. The report's instrument time is this run's own.
+    """
+    assembly = Assembly(layout, options, plan_options)
+    inst = instrument
+    if resume is not None:          # the clock goes on from the stopped run's
+        inst = ShiftedClock(instrument, clock_shift(resume.state, instrument.clock()))
+    t0 = inst.clock()
+    procedure = (assembly.resume(inst.config, resume.state) if resume is not None
+                 else assembly.procedure(inst.config))
+    summary = RunEngine(inst, list(subscribers or ())).run(procedure)
+    total = inst.clock() - t0
+    return report_of(summary, layout, total, sum(summary.wall.values()), layout_name=layout_name)
+
+
+def run_files(instrument_file: Path, layout_file: Path | None = None, *, strategy: str = "full",
+              resume_from: Path | None = None, log: LogTo = LogTo(), report: Path | None = None,
+              progress: AbstractContextManager | None = None) -> Report:
+    """A run as ``nanoasm run`` makes it: the NI-DAQmx instrument of ``instrument_file``,
+    the layout file or, with ``resume_from``, the layout, strategy and last checkpoint of
+    that stopped run's log (logged to ``log.path`` or else a new log beside it), the run
+    log with the instrument file attached, the report file. ``progress`` gives extra
+    subscribers for the run (a progress line) while it runs."""
+    from nanoasm.executor.instrument_file import load_instrument_config
+    from nanoasm.executor.nidaq import NiDaqInstrument
+
+    point = None
+    if resume_from is not None:
+        point = resume_point(resume_from, "run")
+        layout, strategy = point.layout, point.state["strategy"]
+        layout_file = Path(point.metadata.get("layout", "layout.json"))
+        log = replace(log, path=log.path or resumed_log_path(resume_from))
+    else:
+        layout = load_layout(layout_file)
+    config = load_instrument_config(instrument_file)
+    options = ExecOptions(strategy=strategy)
+    meta = {"kind": "run", "strategy": strategy, "layout": str(layout_file), "instrument": str(instrument_file)}
+    if resume_from is not None:
+        meta["resumed_from"] = str(resume_from)
+    suffix = instrument_file.suffix.lower()
+    attach = {"instrument" + suffix: ("application/" + suffix.lstrip("."), instrument_file.read_bytes())}
+    with (NiDaqInstrument(config) as hardware, run_logs(log, layout, meta, attachments=attach) as logs,
+          progress or nullcontext([]) as shown):
+        rep = run(layout, hardware, options=options, subscribers=[*shown, *logs], layout_name=str(layout_file),
+                  resume=point)
+    if report is not None:
+        rep.save(report)
+    return rep
