@@ -5,8 +5,8 @@ A run log holds a ``/checkpoint`` after every push: the executor's whole state
 :class:`~nanoasm.executor.documents.CheckpointDoc`). ``nanoasm run --resume`` and
 ``nanoasm dry-run --resume`` read the last one and go on from there
 (:meth:`~nanoasm.executor.assembly.Assembly.resume`), writing a new log beside the old
-one. What else a harness keeps to go on with is its own business (a dry-run's world:
-:mod:`nanoasm.simkeep`).
+one. What else a harness needs to go on is its own business (a dry-run keeps its
+world beside the log).
 """
 
 from __future__ import annotations
