@@ -318,6 +318,86 @@ class DriftFilter:
         return JointMeasurement(batch.t, folded.results, folded.sel.joint_nis, folded.sel.dof,
                                 folded.sel.drift_jump)
 
+    def measure_projected(self, t: float, z, directions, R=None, *, label: str | None = None) -> Measurement:
+        """Fold components of the offset measured along unit ``directions`` at ``t``: a
+        fixed feature's straight edge measures only the coordinate normal to it
+        (``z_k = directions_k · offset + noise``). Gated alone (χ² with ``m`` dof); a
+        rejection only predicts the estimate to ``t`` and takes no part in drift-jump
+        recovery (the caller decides what a fixed feature out of place means).
+
+        Parameters
+        ----------
+        t : float
+            Time (s), not before :attr:`time`.
+        z : (m,) array
+            Measured components (nm), creep included.
+        directions : (m, 2) array
+            Unit vectors.
+        R : (m, m) array, optional
+            Covariance of ``z`` (nm²); ``measurement_std² I`` by default.
+        label : str, optional
+        """
+        N = np.asarray(directions, float).reshape(-1, 2)
+        z = np.asarray(z, float).reshape(-1)
+        m = N.shape[0]
+        if m == 0 or z.shape != (m,) or not (np.all(np.isfinite(z)) and np.all(np.isfinite(N))):
+            raise ValueError(f"z and directions must be finite, shapes (m,) and (m, 2), got {z.shape}, {N.shape}")
+        if not np.allclose(np.hypot(N[:, 0], N[:, 1]), 1.0, atol=1e-9):
+            raise ValueError("directions must be unit vectors")
+        R = np.eye(m) * self.params.measurement_std**2 if R is None else np.asarray(R, float)
+        if R.shape != (m, m) or not (np.all(np.isfinite(R)) and np.allclose(R, R.T)
+                                     and np.linalg.eigvalsh(R)[0] > 0):
+            raise ValueError(f"R must be a symmetric positive definite ({m}, {m}) array")
+        tau, dt = self._relative(t)
+        p = self.params
+        self.creep.prune(tau)
+        creep, creep_sqrt = self.creep.offset(tau), self.creep.cov_sqrt(tau)
+        x_prior, L_prior = predict_sqrt(self._x, self._L, dt, p.q, p.q_offset)
+        Q_sqrt = process_noise_sqrt(dt, p.q, p.q_offset)
+        H = N @ H_OFFSET
+        NC = N @ creep_sqrt
+        R_total = symmetrize(R + NC @ NC.T)
+        thermal = z - N @ creep
+        prior_sqrt = tria(np.hstack([H @ L_prior, NC]))
+        S_sqrt = tria(np.hstack([prior_sqrt, np.linalg.cholesky(R)]))
+        innovation = thermal - H @ x_prior
+        score, threshold = nis_sqrt(innovation, S_sqrt), gate_threshold(m, p.gate_probability)
+        ok = score <= threshold
+        x, L = (update_sqrt(x_prior, L_prior, thermal, R_total, H)[:2] if ok else (x_prior, L_prior))
+        self._commit(tau, dt, x, L, x_prior, L_prior, Q_sqrt, "measure", creep, creep_sqrt)
+        if ok:
+            self._streak = []
+            self._anchor = (len(self.history) - 1, tau)
+        result = Measurement(self.epoch + tau, z.copy(), R.copy(), ok, "accepted" if ok else "gated",
+                             score, threshold, innovation, _gram(S_sqrt), label, directions=N.copy())
+        self.measurements.append(result)
+        return result
+
+    def reinitialise(self, t: float, offset, cov, *, velocity_std: float = 0.0) -> None:
+        """Start the offset afresh at ``t`` from an absolute measurement (``offset`` nm,
+        creep included, with covariance ``cov``, e.g. a relocalisation by image
+        registration): the velocity estimate is kept, its uncertainty widened by
+        ``velocity_std`` (nm/s); the offset forgets its past and its correlation with
+        the velocity."""
+        offset = np.asarray(offset, float).reshape(2)
+        cov = np.asarray(cov, float)
+        number("velocity_std", velocity_std, nonnegative=True)
+        if not (np.all(np.isfinite(offset)) and cov.shape == (2, 2) and np.all(np.isfinite(cov))
+                and np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov)[0] > 0):
+            raise ValueError("offset must be finite (2,) and cov symmetric positive definite (2, 2)")
+        tau, dt = self._relative(t)
+        p = self.params
+        self.creep.prune(tau)
+        x_prior, L_prior = predict_sqrt(self._x, self._L, dt, p.q, p.q_offset)
+        x = x_prior.copy()
+        x[:2] = offset - self.creep.offset(tau)
+        P = np.zeros((STATE_DIM, STATE_DIM))
+        P[:2, :2] = cov
+        P[2:, 2:] = _gram(L_prior)[2:, 2:] + np.eye(2) * velocity_std**2
+        self._commit(tau, dt, x, psd_sqrt(P), x_prior, L_prior, process_noise_sqrt(dt, p.q, p.q_offset), "reset")
+        self._streak = []
+        self._anchor = (len(self.history) - 1, tau)
+
     def _batch(self, t, zs, Rs, labels) -> _Batch:
         zs = np.asarray(zs, float).reshape(-1, 2)
         n = zs.shape[0]

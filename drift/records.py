@@ -35,7 +35,7 @@ class HistoryEntry(NamedTuple):
     creep_cov : (2, 2) array
         Its covariance (nm²).
     kind : str
-        ``"start"``, ``"predict"``, ``"measure"`` or ``"inflate"``.
+        ``"start"``, ``"predict"``, ``"measure"``, ``"inflate"``, ``"reset"`` (re-initialised) or ``"resume"``.
     P_sqrt, P_prior_sqrt : (4, 4) arrays
         Lower-triangular factors of ``P`` and ``P_prior``.
     Q_sqrt : (4, k) array
@@ -64,9 +64,9 @@ class Measurement:
     ----------
     t : float
         Time (s).
-    z : (2,) array
-        The measured offset (nm), creep included.
-    R : (2, 2) array
+    z : (2,) array, or (m,) for a projected measurement
+        The measured offset (nm), creep included, or its components along ``directions``.
+    R : (2, 2) array, or (m, m)
         Its covariance (nm²).
     accepted : bool
         Folded into the drift estimate.
@@ -75,12 +75,12 @@ class Measurement:
         moved on its own, or the drift jumped); ``"outlier"`` (measured with others, it
         disagreed with them and the prior: the object moved on its own).
     nis : float
-        Its own NIS against the prior used (χ², 2 dof).
+        Its own NIS against the prior used (χ², 2 dof; ``m`` for a projected one).
     threshold : float
-        The 2-dof gate on ``nis``.
-    innovation : (2,) array
-        Measured minus predicted offset (nm).
-    S : (2, 2) array
+        The gate on ``nis``.
+    innovation : (2,) array, or (m,)
+        Measured minus predicted offset (nm), creep taken out.
+    S : (2, 2) array, or (m, m)
         Innovation covariance (nm²).
     label : str or None
         The caller's name for the object or landmark.
@@ -100,6 +100,7 @@ class Measurement:
     S: np.ndarray
     label: str | None = None
     drift_jump: bool = False
+    directions: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 from nanoasm.drift import (
     H_OFFSET,
@@ -209,9 +209,13 @@ hard_cases = {
 
 
 @given(**hard_cases)
+@example(seed=911, log_lo=0.0, span=14.349364636316453, dts=[100000.0, 3145.0], log_r=0.0, scale=0.0)
 def test_joseph_keeps_covariance_psd(seed, log_lo, span, dts, log_r, scale):
     """Covariance form: symmetric, finite, and PSD to rounding at the largest scale the
-    covariance has carried (it cannot resolve anything finer)."""
+    covariance has carried (it cannot resolve anything finer). A prior conditioned 1e14
+    predicted over 1e5 s reaches 1e23 nm² on its largest axis; the form's rounding is
+    then about 1e-12 of that (the example, found by hypothesis, came out 1.003e-12), so
+    the bound allows 1e-11: the square-root form below is the one that keeps precision."""
     rng = np.random.default_rng(seed)
     P = random_spd(rng, 4, log_lo, log_lo + span)
     P = 0.5 * (P + P.T)
@@ -221,11 +225,11 @@ def test_joseph_keeps_covariance_psd(seed, log_lo, span, dts, log_r, scale):
     for dt in dts:
         x, P = predict(x, P, dt, q, q_offset=rng.uniform(0, 1e-2))
         big = max(big, np.linalg.eigvalsh(P)[-1])
-        assert_psd(P, rel=1e-12 * big / max(1.0, np.linalg.eigvalsh(P)[-1]))
+        assert_psd(P, rel=1e-11 * big / max(1.0, np.linalg.eigvalsh(P)[-1]))
         R = random_spd(rng, 2, log_r, log_r + rng.uniform(0, 2))
         res = update(x, P, rng.normal(0, 1, 2) * scale + x[:2], 0.5 * (R + R.T))
         x, P = res.x, res.P
-        assert_psd(P, rel=1e-12 * big / max(1.0, np.linalg.eigvalsh(P)[-1]))
+        assert_psd(P, rel=1e-11 * big / max(1.0, np.linalg.eigvalsh(P)[-1]))
         assert np.all(np.isfinite(x)) and math.isfinite(res.nis) and res.nis >= 0
 
 
@@ -798,3 +802,73 @@ def test_creeping_offset_follows_recorded_and_pending_moves():
     # later records do not change a prediction already made
     hist.record(130.0, (5000.0, 0.0))
     assert np.array_equal(pred(ts), got)
+
+
+# -- fixed features and relocalisation -------------------------------------------------------
+
+
+def test_projected_measurement_along_both_axes_is_an_offset_measurement():
+    a, _, _ = converged_filter()
+    b, _, _ = converged_filter()
+    z, R = np.array([541.0, -181.5]), np.diag([2.0, 3.0])
+    full = a.measure(1800.0, z, R)
+    proj = b.measure_projected(1800.0, z, np.eye(2), R)
+    assert full.accepted and proj.accepted
+    assert np.allclose(a.x, b.x, atol=1e-9) and np.allclose(a.P, b.P, atol=1e-9)
+    assert proj.directions.shape == (2, 2) and full.directions is None
+
+
+def test_an_edge_informs_only_the_coordinate_normal_to_it():
+    f, v, _ = converged_filter()
+    f.inflate(offset_std=20.0)          # both axes uncertain, independent of the velocity
+    before = f.offset(1800.0)
+    n = np.array([0.6, 0.8])
+    truth = v * 1800.0 + np.array([8.0, -3.0])
+    m = f.measure_projected(1800.0, [n @ truth, n @ truth], np.vstack([n, n]), np.eye(2) * 0.25)
+    after = f.offset(1800.0)
+    assert m.accepted and m.innovation.shape == (2,)
+    t = np.array([-0.8, 0.6])
+    assert n @ after.cov @ n < 0.2 * (n @ before.cov @ n)          # normal: measured
+    assert t @ after.cov @ t > 0.9 * (t @ before.cov @ t)          # along the edge: not
+    assert abs(n @ (after.offset - truth)) < 1.0
+
+
+def test_a_projected_measurement_far_off_is_gated_and_only_predicts():
+    f, v, _ = converged_filter()
+    x_prior, P_prior = f.state_at(1800.0)
+    m = f.measure_projected(1800.0, [(v * 1800.0)[0] + 60.0], [[1.0, 0.0]], [[1.0]])
+    assert not m.accepted and m.reason == "gated" and m.nis > m.threshold
+    assert np.allclose(f.x, x_prior) and np.allclose(f.P, P_prior)
+    assert f.history[-1].kind == "measure" and f.time == 1800.0
+
+
+def test_a_projected_measurement_takes_the_creep_out():
+    f = DriftFilter(DriftFilterParams(q=1e-6, creep=CreepModelParams(amplitude=0.01, tau=0.1)))
+    f.record_move(10.0, (4000.0, 0.0))
+    creep = f.creep.offset(20.0)
+    assert creep[0] < -10.0
+    m = f.measure_projected(20.0, [creep[0] + 3.0], [[1.0, 0.0]], [[1.0]])
+    assert m.accepted and abs(m.innovation[0] - 3.0) < 1e-9
+    assert abs(f.offset(20.0).offset[0] - (creep[0] + 3.0)) < 1.0
+
+
+@pytest.mark.parametrize("bad", [dict(z=[1.0], directions=[[1.0, 1.0]]),
+                                 dict(z=[1.0, 2.0], directions=[[1.0, 0.0]]),
+                                 dict(z=[np.nan], directions=[[1.0, 0.0]]),
+                                 dict(z=[1.0], directions=[[1.0, 0.0]], R=[[-1.0]])])
+def test_projected_measurement_rejects_bad_input(bad):
+    with pytest.raises(ValueError):
+        DriftFilter().measure_projected(1.0, **bad)
+
+
+def test_reinitialise_sets_the_offset_and_keeps_the_velocity():
+    f, v, _ = converged_filter()
+    vel = f.x[2:]
+    f.reinitialise(1800.0, v * 1800.0 + [300.0, -120.0], np.diag([9.0, 4.0]), velocity_std=0.01)
+    est = f.offset(1800.0)
+    assert np.allclose(est.offset, v * 1800.0 + [300.0, -120.0])
+    assert np.allclose(est.cov, np.diag([9.0, 4.0]))
+    assert np.allclose(f.x[2:], vel) and f.P[2, 2] >= 1e-4
+    assert np.allclose(f.P[:2, 2:], 0.0) and f.history[-1].kind == "reset"
+    m = f.measure(1830.0, v * 1830.0 + [300.0, -120.0], np.eye(2))
+    assert m.accepted
