@@ -5,7 +5,8 @@ the field's ``source``), otherwise it is a realistic value with a note. The scen
 ``[drift]`` and ``[noise]`` tables have fixed keys (both required when the table is
 given); every other table and key is optional. The world's truth is not the planner's
 model: objects get a seeded per-object scatter in friction, adhesion, pivot and path
-(``scatter`` keys), and faults are off (probability 0) unless a scene turns them on.
+(``scatter`` keys), a scene may make its drift change (``[drift_change]``: settling and
+jumps; off by default), and faults are off (probability 0) unless a scene turns them on.
 
 ``WorldParams.from_tables`` reads the tables of a scene, ``to_tables`` writes back only
 what differs from the defaults, and :func:`params_markdown` renders the reference.
@@ -174,6 +175,25 @@ class DriftParams:
 
 
 @dataclass(frozen=True)
+class DriftChangeParams:
+    """How the thermal drift departs from a steady velocity: settling and sudden jumps."""
+
+    acceleration: tuple[float, float] = param(
+        (0.0, 0.0), "nm/s²", "steady change of the drift velocity (thermal settling): the steady "
+        "offset becomes v t + a t²/2", source="not in the seed; a drifting stage settles over hours")
+    jump: float = param(0.0, "nm", "size of a sudden offset jump (a knock, a thermal shock); 0: none",
+                        source="not in the seed", nonnegative=True)
+    jump_at: float = param(600.0, "s", "time of the first jump after the drift's zero (the simulated "
+                           "instrument's start)", nonnegative=True)
+    jump_every: float = param(0.0, "s", "period of repeated jumps (steps may overlap); 0: only once",
+                              nonnegative=True)
+    jump_duration: float = param(1.0, "s", "a jump is a smooth (C1) step over this time", positive=True)
+
+    def __post_init__(self) -> None:
+        validate(self)
+
+
+@dataclass(frozen=True)
 class CreepParams:
     """Logarithmic piezo creep after large moves: γ s log10(1 + t / τ) along the step s."""
 
@@ -264,8 +284,8 @@ class SimParams:
 _GROUPS: dict[str, type] = {
     "tip": TipParams, "cantilever": CantileverParams, "friction": FrictionParams,
     "adhesion": AdhesionParams, "push": PushParams, "vdw": VdwParams, "scanner": InstrumentConfig,
-    "timing": TimingParams, "drift": DriftParams, "creep": CreepParams, "noise": NoiseParams,
-    "faults": FaultParams, "sim": SimParams,
+    "timing": TimingParams, "drift": DriftParams, "drift_change": DriftChangeParams, "creep": CreepParams,
+    "noise": NoiseParams, "faults": FaultParams, "sim": SimParams,
 }
 
 #: The scene tables whose keys :class:`WorldParams` owns, in documentation order.
@@ -285,6 +305,7 @@ class WorldParams:
     scanner: InstrumentConfig = field(default_factory=InstrumentConfig)
     timing: TimingParams = field(default_factory=TimingParams)
     drift: DriftParams = field(default_factory=DriftParams)
+    drift_change: DriftChangeParams = field(default_factory=DriftChangeParams)
     creep: CreepParams = field(default_factory=CreepParams)
     noise: NoiseParams = field(default_factory=NoiseParams)
     faults: FaultParams = field(default_factory=FaultParams)
@@ -336,8 +357,8 @@ def params_markdown() -> str:
 
 
 __all__ = [
-    "TABLES", "AdhesionParams", "CantileverParams", "CreepParams", "DriftParams", "FaultParams",
-    "FrictionParams", "NoiseParams", "PushParams", "SimParams", "TimingParams", "TipParams", "VdwParams",
-    "WorldParams", "params_markdown",
+    "TABLES", "AdhesionParams", "CantileverParams", "CreepParams", "DriftChangeParams", "DriftParams",
+    "FaultParams", "FrictionParams", "NoiseParams", "PushParams", "SimParams", "TimingParams", "TipParams",
+    "VdwParams", "WorldParams", "params_markdown",
 ]
 

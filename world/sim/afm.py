@@ -8,7 +8,8 @@ Frames. The *sample frame* is the scene's (and the layout's) frame. The *scanner
 is the DAC's (see :mod:`nanoasm.instrument`): a sample point ``p`` lies under the
 scanner position ``p + d(t)``, ``d`` the drift offset of
 :class:`~nanoasm.world.sim.drift_model.DriftModel` (zero at the clock's start time, 0 unless
-given, before the run's first scan). The deflected tip sits at ``piezo + R(ψ)⁻¹ δ`` (eq. 3.30-3.34).
+given, before the run's first scan; it follows the world's ``[drift]``, ``[drift_change]`` and
+``[creep]``). The deflected tip sits at ``piezo + R(ψ)⁻¹ δ`` (eq. 3.30-3.34).
 
 Contact rule. The tip touches the substrate when the commanded ``z ≤ 0`` (``z = -preload``
 while pushing); the lever then presses with ``k (H - z)`` nN, H the height of what the
@@ -115,7 +116,8 @@ class SimulatedAFM:
             placement = (0.5 * (cfg.xy_range[0] - scene.area[0]), 0.5 * (cfg.xy_range[1] - scene.area[1]))
         self.placement = (float(placement[0]), float(placement[1]))
         self._drift = PlacedDrift(DriftModel(self.params.drift, self.params.creep, rng["drift"],
-                                             epoch=self._clock.now), self.placement)
+                                             epoch=self._clock.now, change=self.params.drift_change),
+                                  self.placement)
         table, units, groups, wires = build_objects(scene.objects, self.params, rng["truth"])
         self._world = PushPhysics(table, units, groups, wires, self.params, scene.obstacles,
                                   rng["faults"], rng["vdw"])

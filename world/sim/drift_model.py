@@ -10,6 +10,14 @@ Hermite) step, so the tip never sees a jump. Grid block ``b`` draws its noise fr
 function of the model's seed alone: how the queries are chunked or ordered does not
 matter. Times are stored relative to an ``epoch`` (the run's start).
 
+Drift change (``[drift_change]``, off by default): the steady part of the thermal offset
+is ``v t + a t²/2`` (``a`` the ``acceleration``: thermal settling), and jumps of
+``jump`` nm (a knock, a thermal shock) start at ``jump_at`` s and, if ``jump_every > 0``,
+every ``jump_every`` s after; each is a C1 smoothstep ``3p² - 2p³`` over ``jump_duration``
+s, so the offset stays smooth (steps may overlap). Jump ``k``'s direction is uniform,
+drawn from the stream ``SeedSequence(entropy, spawn_key=(k // 256, 1))``: apart from
+the walk's, so jumps never change the walk's draws.
+
 Creep: each recorded move of the scanner by a step ``s`` (at least ``min_step`` long)
 adds ``γ s log10(1 + (t - t_s) / τ)`` for ``t > t_s``: the piezo keeps extending along
 the step, logarithmically (seed 3.7 refers creep to its ref. [50]).
@@ -25,9 +33,11 @@ import math
 
 import numpy as np
 
-from nanoasm.world.params import CreepParams, DriftParams
+from nanoasm.world.params import CreepParams, DriftChangeParams, DriftParams
 
 _BLOCK = 4096  # grid steps per noise block
+_JUMP_BLOCK = 256  # jump directions per stream
+_JUMP_STREAM = 1  # second spawn-key word of the jumps' streams (the walk's keys have one word)
 
 
 class DriftModel:
@@ -43,10 +53,12 @@ class DriftModel:
         Instrument time (s) at which the drift is zero: the first full scan of the run.
     grid : float
         Step (s) of the internal grid of the random walk.
+    change : DriftChangeParams, optional
+        ``[drift_change]`` of the world: acceleration and jumps (default: none).
     """
 
     def __init__(self, drift: DriftParams, creep: CreepParams, rng: np.random.Generator, *,
-                 epoch: float = 0.0, grid: float = 1.0):
+                 epoch: float = 0.0, grid: float = 1.0, change: DriftChangeParams | None = None):
         if not (math.isfinite(grid) and grid > 0):
             raise ValueError(f"grid must be positive and finite, got {grid}")
         if not math.isfinite(epoch):
@@ -62,6 +74,10 @@ class DriftModel:
         self._u = np.zeros((1, 2))  # random-walk velocity at grid nodes
         self._moves_t: list[float] = []
         self._moves_s: list[tuple[float, float]] = []
+        self.change = DriftChangeParams() if change is None else change
+        self._a = np.asarray(self.change.acceleration, float)
+        self._dirs = np.zeros((0, 2))  # unit direction of each jump
+        self._sums = np.zeros((1, 2))  # _sums[k]: sum of the first k directions
 
     # -- thermal drift ----------------------------------------------------------------------
     def _elapsed(self, t) -> np.ndarray:
@@ -103,7 +119,12 @@ class DriftModel:
         h01, h11 = -2 * u**3 + 3 * u**2, u**3 - u**2
         walk = (h00 * self._w[k] + h10 * h * self._u[k]
                 + h01 * self._w[k + 1] + h11 * h * self._u[k + 1])
-        return _split(walk + tau[..., None] * self._v)
+        out = walk + tau[..., None] * self._v
+        if np.any(self._a):
+            out = out + 0.5 * tau[..., None] ** 2 * self._a
+        if self.change.jump > 0:
+            out = out + self._jumps(tau)[0]
+        return _split(out)
 
     def velocity(self, t):
         """Thermal drift velocity ``(vx, vy)`` in nm/s at time(s) ``t``."""
@@ -113,7 +134,50 @@ class DriftModel:
         d00, d10 = (6 * u**2 - 6 * u) / h, 3 * u**2 - 4 * u + 1
         d01, d11 = (-6 * u**2 + 6 * u) / h, 3 * u**2 - 2 * u
         walk = d00 * self._w[k] + d10 * self._u[k] + d01 * self._w[k + 1] + d11 * self._u[k + 1]
-        return _split(walk + self._v)
+        out = walk + self._v
+        if np.any(self._a):
+            out = out + tau[..., None] * self._a
+        if self.change.jump > 0:
+            out = out + self._jumps(tau)[1]
+        return _split(out)
+
+    # -- drift change: jumps ------------------------------------------------------------------
+    def _extend_jumps(self, n: int) -> None:
+        """Draw jump directions (stream by stream) until there are at least ``n``."""
+        while self._dirs.shape[0] < n:
+            b = self._dirs.shape[0] // _JUMP_BLOCK
+            gen = np.random.default_rng(np.random.SeedSequence(self._entropy, spawn_key=(b, _JUMP_STREAM)))
+            angle = gen.uniform(0.0, 2.0 * math.pi, _JUMP_BLOCK)
+            dirs = np.column_stack([np.cos(angle), np.sin(angle)])
+            self._dirs = np.vstack([self._dirs, dirs])
+            self._sums = np.vstack([self._sums, self._sums[-1] + np.cumsum(dirs, axis=0)])
+
+    def _jumps(self, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Offset and velocity ``(..., 2)`` of the jumps at elapsed times ``tau``.
+
+        Jump ``k`` starts at ``jump_at + k jump_every`` (only ``k = 0`` when ``jump_every``
+        is 0); those ended by ``tau`` add their whole step through the running sums of the
+        directions, those in progress their smoothstep. The phase is clipped, so which
+        side of a boundary a time is counted on changes nothing.
+        """
+        c = self.change
+        rel = tau - c.jump_at
+        if c.jump_every > 0:
+            started = np.floor(np.maximum(rel, 0.0) / c.jump_every).astype(np.int64) + 1
+            done = np.maximum(rel - c.jump_duration, -c.jump_every)
+            ended = np.floor(done / c.jump_every).astype(np.int64) + 1
+        else:
+            started, ended = np.ones(rel.shape, np.int64), np.zeros(rel.shape, np.int64)
+        self._extend_jumps(int(started.max(initial=1)))
+        k = ended[..., None] + np.arange(int((started - ended).max(initial=1)))  # (..., m) in progress
+        live = k < started[..., None]
+        k = np.minimum(k, started[..., None] - 1)
+        p = np.clip((rel[..., None] - k * c.jump_every) / c.jump_duration, 0.0, 1.0)
+        step = np.where(live, p * p * (3.0 - 2.0 * p), 0.0)[..., None]
+        rate = np.where(live, 6.0 * p * (1.0 - p) / c.jump_duration, 0.0)[..., None]
+        dirs = self._dirs[k]
+        return (c.jump * (self._sums[ended] + (step * dirs).sum(axis=-2)),
+                c.jump * (rate * dirs).sum(axis=-2))
 
     # -- creep -------------------------------------------------------------------------------
     def record_move(self, t: float, dx: float, dy: float) -> bool:
