@@ -254,7 +254,8 @@ def test_edge_pattern_drives_the_protocol(plain):
     assert first.a == (1300.0 + d - 30.0, 450.0) and first.b == (1300.0 + d + 30.0, 450.0)
     with pytest.raises(ValueError, match="shape"):
         pattern.send(np.zeros(3))
-    result = run_pattern(edge_pattern(sites, 30.0), scanner_of(surface, (3.0, 0.0), np.random.default_rng(1), log))
+    scan = scanner_of(surface, (3.0, 0.0), np.random.default_rng(1), log)
+    result = run_pattern(edge_pattern(sites, 30.0), scan)
     assert result.found and result.ok.all() and result.lines == 2
     assert result.samples == pattern_samples(30.0, 1.0, 2) == sum(n for _, _, n in log) == 2 * 61
     assert np.allclose(result.offsets, 3.0, atol=0.5)
@@ -273,7 +274,8 @@ def test_edge_pattern_refuses_disagreeing_sites(plain):
     bodies = [Body("p", "particle", (1300.0 + 10.5, 650.0), 20.0)]
     cluttered = make_surface(bodies, [(BOX_A, H)], (1600.0, 1100.0), rng=np.random.default_rng(5))
     sites[1] = ((1300.0 + d, 650.0), (1.0, 0.0), H)
-    result = run_pattern(edge_pattern(sites, 30.0), scanner_of(cluttered, (0.0, 0.0), np.random.default_rng(2)))
+    scan = scanner_of(cluttered, (0.0, 0.0), np.random.default_rng(2))
+    result = run_pattern(edge_pattern(sites, 30.0), scan)
     assert not result.found and list(result.ok) == [True, False]
     assert result.reason.startswith("line E1:") and math.isnan(result.offsets[1])
 
