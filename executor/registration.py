@@ -5,8 +5,9 @@ corner, a cluster of particles that will not be pushed) registered on the same w
 of the first full scan measures the drift in both coordinates at once (Yang et al.,
 IEEE T-NANO 2008: image registration by phase correlation).
 
-:func:`choose_windows` picks such windows in the full scan; :func:`register` measures
-the shift of a new scan against it. Lengths in nm; images are
+This module holds :func:`register`, which measures the shift of a new scan against the
+full scan (:class:`Registration`); the windows are chosen by
+:func:`~nanoasm.executor.windows.choose_windows`. Lengths in nm; images are
 :class:`~nanoasm.instrument.HeightImage` (row 0 at the bottom, ``origin`` the lower-left
 corner of pixel (0, 0)) of one pixel size.
 
@@ -38,10 +39,8 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import shapely
 from scipy import ndimage
 from scipy.signal import correlate
-from skimage.filters import window as taper
 
 from nanoasm.instrument import HeightImage
 from nanoasm.param import number
@@ -52,8 +51,6 @@ from nanoasm.param import number
 MIN_SCORE = 0.7
 #: A second correlation peak this close to the best (ratio) makes the match ambiguous.
 AMBIGUITY = 0.9
-#: Windows more masked than this fraction are not candidates.
-MAX_MASKED = 0.5
 #: A new scan whose slopes vary less than this fraction in their weakest direction than
 #: in their strongest (eigenvalues of their covariance) holds one straight edge alone:
 #: 0.001 for an edge with the corner just out of view, 0.16-0.4 with it in view.
@@ -66,23 +63,6 @@ MIN_CONDITION = 0.01
 STD_FACTOR = 1.0
 STD_FLOOR = 0.03
 BACK_FACTOR = 1.5
-
-
-@dataclass(frozen=True)
-class Window:
-    """A square window ``region = (x0, y0, x1, y1)`` (nm, the image's frame) and its
-    score: the smaller eigenvalue of the structure tensor (squared slopes, nm/nm) summed
-    over it, weighted towards its centre (see :func:`choose_windows`)."""
-
-    region: tuple[float, float, float, float]
-    score: float
-
-    def __post_init__(self) -> None:
-        x0, y0, x1, y1 = (number("region", v) for v in self.region)
-        if not (x1 > x0 and y1 > y0):
-            raise ValueError(f"region must have x1 > x0 and y1 > y0, got {self.region!r}")
-        object.__setattr__(self, "region", (x0, y0, x1, y1))
-        object.__setattr__(self, "score", number("score", self.score, nonnegative=True))
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,103 +89,6 @@ class Registration:
     ok: bool
     reason: str
 
-
-# ---------------------------------------------------------------- windows
-
-def choose_windows(image: HeightImage, size: float, *, avoid=None, count: int = 3,
-                   min_separation: float | None = None, margin: float | None = None
-                   ) -> tuple[Window, ...]:
-    """Square windows of side ``size`` whose content is distinctive in both directions.
-
-    Each candidate (a grid of positions an eighth of the side apart) is scored by the
-    smaller eigenvalue of the structure tensor ``sum w (g - mean g)(g - mean g)^T`` of the
-    slopes ``g`` (Gaussian derivatives, one pixel) over its unmasked pixels: a corner of
-    an electrode or a cluster of particles has slopes in both directions, a straight edge
-    in one only, bare substrate hardly any; a tilt does not count. The weight ``w`` is a
-    radial Hann window: content near the centre counts most, as it stays in view of a
-    new scan that the drift has moved by a good part of the side. Pixels within
-    ``margin`` of ``avoid`` are masked; candidates more than :data:`MAX_MASKED` masked
-    are skipped.
-
-    Parameters
-    ----------
-    image : HeightImage
-        The full scan.
-    size : float
-        Side of the windows (nm), at least 8 pixels and at most the image.
-    avoid : shapely geometry, optional
-        What must not be relied on (objects that will be pushed, slots), image frame.
-    count : int
-        Most windows returned.
-    min_separation : float, optional
-        Least distance between chosen windows' centres (nm); ``size`` by default.
-    margin : float, optional
-        How near ``avoid`` a pixel is masked (nm); ``max(2 px, 20 nm)`` by default (the
-        tip broadens what is imaged).
-
-    Returns
-    -------
-    tuple of Window
-        Best first; fewer than ``count`` when the candidates run out.
-    """
-    if not isinstance(image, HeightImage):
-        raise ValueError(f"image must be a HeightImage, got {type(image).__name__}")
-    ps = image.pixel_size
-    size = number("size", size, positive=True)
-    k = int(round(size / ps))
-    ny, nx = image.shape
-    if not 8 <= k <= min(nx, ny):
-        raise ValueError(f"size must span 8 to {min(nx, ny)} pixels, got {size:g} nm ({k} pixels)")
-    count = number("count", count, integer=True, lo=1)
-    sep = size if min_separation is None else number("min_separation", min_separation, nonnegative=True)
-    margin = max(2 * ps, 20.0) if margin is None else number("margin", margin, nonnegative=True)
-    valid = np.ones(image.shape, bool) if avoid is None else ~_near(image, avoid, margin)
-    gx = ndimage.gaussian_filter(image.height, 1.0, order=(0, 1)) / ps
-    gy = ndimage.gaussian_filter(image.height, 1.0, order=(1, 0)) / ps
-    step = max(1, k // 8)
-    weight = taper("hann", (k, k))                 # what survives a shift counts most
-    sums = [_window_sums(a * valid, weight, step) for a in (valid, gx, gy, gx * gx, gy * gy, gx * gy)]
-    n, sx, sy, sxx, syy, sxy = sums
-    nn = np.maximum(n, 1e-9)
-    a, c, b = sxx - sx * sx / nn, syy - sy * sy / nn, sxy - sx * sy / nn
-    score = np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
-    unmasked = _window_sums(valid.astype(float), np.ones((k, k)), step)
-    score[unmasked < (1 - MAX_MASKED) * k * k] = -1.0
-    chosen: list[Window] = []
-    for flat in np.argsort(score, axis=None)[::-1]:
-        if len(chosen) == count or score.flat[flat] < 0:
-            break
-        i, j = np.unravel_index(flat, score.shape)
-        x0, y0 = image.origin[0] + j * step * ps, image.origin[1] + i * step * ps
-        centre = np.array([x0 + 0.5 * k * ps, y0 + 0.5 * k * ps])
-        if all(math.dist(centre, _centre(w)) >= sep for w in chosen):
-            chosen.append(Window((x0, y0, x0 + k * ps, y0 + k * ps), float(score.flat[flat])))
-    return tuple(chosen)
-
-
-def _centre(w: Window) -> tuple[float, float]:
-    x0, y0, x1, y1 = w.region
-    return 0.5 * (x0 + x1), 0.5 * (y0 + y1)
-
-
-def _near(image: HeightImage, geometry, margin: float) -> np.ndarray:
-    """Pixels whose centres lie within ``margin`` of ``geometry``."""
-    if not isinstance(geometry, shapely.Geometry):
-        raise ValueError(f"avoid must be a shapely geometry, got {type(geometry).__name__}")
-    x, y = image.pixel_centres()
-    grown = geometry.buffer(margin) if margin > 0 else geometry
-    return shapely.contains_xy(grown, x[None, :], y[:, None]) | shapely.intersects_xy(
-        geometry, x[None, :], y[:, None])
-
-
-def _window_sums(a: np.ndarray, weight: np.ndarray, step: int) -> np.ndarray:
-    """Sums of ``a`` times ``weight`` over the windows whose lower-left pixel lies on a
-    ``step`` grid."""
-    full = correlate(a, weight, mode="valid", method="fft")
-    return full[::step, ::step]
-
-
-# ---------------------------------------------------------------- registration
 
 def register(reference: HeightImage, moving: HeightImage, *, reference_mask=None, moving_mask=None,
              max_shift: float | None = None) -> Registration:

@@ -1,7 +1,8 @@
-"""Fixed features for drift (executor/fixed_features.py): edge and corner sites found in
-a rendered full scan, the step on one rendered local line, and the edge pattern driven
-through the scan-pattern protocol. Scenes are rendered by world.render (the simulator's
-own physics): electrodes 30 nm high, 10 nm pixels, 0.3 nm noise, 0.2 nm roughness."""
+"""Fixed features for drift: edge and corner sites found in a rendered full scan
+(executor/fixed_features.py), the step on one rendered local line and the edge pattern
+driven through the scan-pattern protocol (executor/edge_scan.py). Scenes are rendered by
+world.render (the simulator's own physics): electrodes 30 nm high, 10 nm pixels, 0.3 nm
+noise, 0.2 nm roughness."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ import pytest
 import shapely
 
 from nanoasm.bodies import Body
-from nanoasm.executor.fixed_features import (EdgeScanResult, EdgeSite, Feature, edge_pattern,
-                                             find_features, locate_step, pattern_samples)
+from nanoasm.executor.edge_scan import EdgeScanResult, edge_pattern, locate_step, pattern_samples
+from nanoasm.executor.fixed_features import EdgeSite, Feature, find_features
 from nanoasm.executor.scan_lines import ScanLine, run_pattern
 from nanoasm.world.environment import EnvObstacle
 from nanoasm.world.identify import identify

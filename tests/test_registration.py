@@ -1,7 +1,8 @@
-"""Relocalisation by registration (executor/registration.py): windows chosen in a rendered
-full scan, and new small scans of them registered back at known shifts. Scenes are
-rendered by world.render: electrodes 30 nm high, a cluster of 20 nm particles, 10 nm
-pixels, 0.3 nm noise, 0.2 nm roughness; windows of 48 pixels (480 nm)."""
+"""Relocalisation by registration: windows chosen in a rendered full scan
+(executor/windows.py), and new small scans of them registered back at known shifts
+(executor/registration.py). Scenes are rendered by world.render: electrodes 30 nm high,
+a cluster of 20 nm particles, 10 nm pixels, 0.3 nm noise, 0.2 nm roughness; windows of
+48 pixels (480 nm)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import pytest
 import shapely
 
 from nanoasm.bodies import Body
-from nanoasm.executor.registration import Registration, Window, choose_windows, register
+from nanoasm.executor.registration import Registration, register
+from nanoasm.executor.windows import Window, choose_windows
 from nanoasm.instrument import HeightImage
 from nanoasm.world.render import make_surface, render_scan
 
