@@ -11,26 +11,28 @@ full scan (:class:`Registration`); the windows are chosen by
 :class:`~nanoasm.instrument.HeightImage` (row 0 at the bottom, ``origin`` the lower-left
 corner of pixel (0, 0)) of one pixel size.
 
-The whole-pixel shift is the peak of the masked normalised cross-correlation of the new
-scan over the full scan's window grown by ``max_shift`` on every side (Padfield's
-masked correlation, the algorithm of skimage's masked ``phase_cross_correlation``,
-here over whole overlaps only and keeping the whole surface, whose second peak tells
-an ambiguous match). Phase correlation of two windows of one size wraps round at half
-their side and loses the overlap as the shift grows (40 % of the side in both axes
-leaves 36 % of the window); growing the reference's window instead keeps the new scan
-wholly inside it, so nothing wraps and any shift up to ``max_shift`` is found.
+The whole-pixel shift is found by ``skimage.registration.phase_cross_correlation`` in
+its masked mode (Padfield's masked normalised cross-correlation) of the new scan over
+the full scan's window grown by ``max_shift`` on every side; the correlation surface,
+whose second peak tells an ambiguous match, comes from skimage's own
+``cross_correlate_masked`` (private in skimage 0.26, scikit-image issue 6326). Phase
+correlation of two windows of one size wraps round at half their side and loses the
+overlap as the shift grows (40 % of the side in both axes leaves 36 % of the window);
+growing the reference's window instead keeps the new scan wholly inside it, so nothing
+wraps and any shift up to ``max_shift`` is found. Beyond it the masked correlation
+still sees the content on the part of the new scan that overlaps the grown window (at
+least :data:`MIN_OVERLAP`), so a larger shift is refused as such.
 
-The sub-pixel shift is a least-squares fit (Gauss-Newton through a cubic spline of the
-reference, offset and tilt free), which takes masks as they come and gives its own
-covariance. Measured on rendered scans (10 nm pixels, 0.3 nm noise, 48-pixel windows on
-electrode corners and a particle cluster, 320 shifts up to 40 % of the side), from the
-same whole-pixel step: the fit erred by 0.35 nm rms (0.17 median); a parabola through
-the correlation's peak (what skimage's masked mode would leave) 0.47 (0.29);
-``skimage.registration.phase_cross_correlation`` upsampled 20 times on the two
-Hann-windowed windows 1.23 (0.35) without normalisation and 2.58 (0.94) with the phase
+The sub-pixel shift is a least-squares fit from that whole-pixel shift (Gauss-Newton
+through a cubic spline of the reference, offset and tilt free), which takes masks as
+they come and gives its own covariance. Measured on rendered scans (10 nm pixels, 0.3 nm
+noise, 48-pixel windows on three electrode corners and a particle cluster, 280 shifts up
+to 40 % of the side), from the same whole-pixel step: the fit erred by 0.31 nm rms (0.08
+median); a parabola through the correlation's peak 0.90 (0.48); skimage's sub-pixel
+step (``upsample_factor`` 20, which it offers without masks only) on the two
+Hann-windowed windows 1.43 (0.40) without normalisation and 3.44 (1.02) with the phase
 normalisation, which whitens the aliased high frequencies of steps and particles a
-pixel or two wide and pulls the peak to whole pixels. So skimage's function is not
-used.
+pixel or two wide and pulls the peak to whole pixels. So the sub-pixel step is the fit.
 """
 
 from __future__ import annotations
@@ -40,7 +42,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
-from scipy.signal import correlate
+from skimage.registration import phase_cross_correlation
+from skimage.registration._masked_phase_cross_correlation import cross_correlate_masked
 
 from nanoasm.instrument import HeightImage
 from nanoasm.param import number
@@ -51,6 +54,10 @@ from nanoasm.param import number
 MIN_SCORE = 0.7
 #: A second correlation peak this close to the best (ratio) makes the match ambiguous.
 AMBIGUITY = 0.9
+#: Offsets at which the unmasked pixels of the two scans overlap less than this fraction
+#: of their largest overlap are not searched (``overlap_ratio`` of skimage's masked
+#: correlation): a small overlap matches by chance.
+MIN_OVERLAP = 0.5
 #: A new scan whose slopes vary less than this fraction in their weakest direction than
 #: in their strongest (eigenvalues of their covariance) holds one straight edge alone:
 #: 0.001 for an edge with the corner just out of view, 0.16-0.4 with it in view.
@@ -99,16 +106,16 @@ def register(reference: HeightImage, moving: HeightImage, *, reference_mask=None
     frame (e.g. the scanner region minus the drift estimate); the shift says how far its
     content actually lies from there. The reference is cropped to the new scan's
     region grown by ``max_shift`` (masked where that leaves the image), both are
-    levelled (:func:`_level`), the whole-pixel shift is the peak of their masked
-    normalised cross-correlation and the sub-pixel shift a least-squares fit
+    levelled (:func:`_level`), the whole-pixel shift is the peak of skimage's masked
+    ``phase_cross_correlation`` and the sub-pixel shift a least-squares fit from there
     (:func:`_fit_shift`); see the module docstring.
 
     The match is refused (``ok`` False) when the score is below :data:`MIN_SCORE`; when
     a second peak of the correlation (a local maximum over 5 x 5 pixels) reaches
     :data:`AMBIGUITY` of the best (a periodic pattern); when the content varies along one
     direction only (the new scan's slopes, :func:`_condition`, below
-    :data:`MIN_CONDITION`: a straight edge alone); or when the best peak
-    lies on the search's limit (the shift may be larger).
+    :data:`MIN_CONDITION`: a straight edge alone); or when the best peak lies on or
+    beyond the search's limit (the shift may be larger).
 
     ``std`` (nm, each axis) holds the fit's 1-sigma in its weakest direction (from its
     residuals, so noise and any mismatch of the two scans count), a floor of
@@ -118,16 +125,19 @@ def register(reference: HeightImage, moving: HeightImage, *, reference_mask=None
     (10 nm pixels, 0.3 nm noise, 0.2 nm roughness, 48-pixel windows, 200 shifts each,
     uniform up to 40 % of the side in each axis, all registered ok):
 
-    ==========================  =========  =====  ===========  ============
-    window centred on           rms error  std    within 1 std within 2 std
-    ==========================  =========  =====  ===========  ============
-    electrode corner (square)   0.23 nm    0.32   86-92 %      100 %
-    electrode corner (oblique)  0.05 nm    0.32   100 %        100 %
-    cluster of 20 nm particles  0.50 nm    0.85   74-79 %      98-99.5 %
-    ==========================  =========  =====  ===========  ============
+    ==========================  ============  =====  ============  ============
+    window centred on           rms error     std    within 1 std  within 2 std
+    ==========================  ============  =====  ============  ============
+    electrode corner (square)   0.22-0.23 nm  0.32   83-92 %       100 %
+    electrode corner (oblique)  0.06 nm       0.33   100 %         100 %
+    cluster of 20 nm particles  0.52-0.55 nm  1.05   72-82 %       97-99.5 %
+    ==========================  ============  =====  ============  ============
 
-    (per axis within 1 std; both axes within 2 std). It took 12-17 ms a call on a
-    256 x 256 reference.
+    (three seeds; per axis within 1 std; both axes within 2 std). It took 20 ms a call
+    (processor time, median) on a 256 x 256 reference, 7.5 ms of it the whole-pixel
+    step: skimage's masked correlation works on the full 137 x 137 surface of a 48-pixel
+    scan and a 21-pixel search, and ``phase_cross_correlation`` does not return the
+    surface, so it is computed twice.
 
     Parameters
     ----------
@@ -158,29 +168,39 @@ def register(reference: HeightImage, moving: HeightImage, *, reference_mask=None
     if mov_ok.sum() < 0.25 * mov_ok.size or big_ok.sum() < 0.25 * mov_ok.size:
         return _refused("too little unmasked content to register")
     big, mov = _level(big, big_ok), _level(moving.height, mov_ok)
-    ncc = _masked_ncc(big, big_ok, mov, mov_ok)
-    if not np.isfinite(ncc).any():
-        return _refused("no overlap of the unmasked content")
-    peak = np.array(np.unravel_index(np.nanargmax(ncc), ncc.shape))
-    fit = _fit_shift(big, big_ok, mov, mov_ok, peak)
-    if fit is None:
-        return _refused("the sub-pixel fit did not converge")
+    found, _, _ = phase_cross_correlation(big, mov, reference_mask=big_ok, moving_mask=mov_ok,
+                                          overlap_ratio=MIN_OVERLAP)
+    peak = np.round(found).astype(int) + m           # mov's pixel (0, 0) in big
+    ncc = cross_correlate_masked(big, mov, big_ok, mov_ok, mode="full", axes=(0, 1),
+                                 overlap_ratio=MIN_OVERLAP)
+    zero = np.array(mov.shape) - 1                   # ncc's index of peak (0, 0)
+    best = ncc[tuple(peak + zero)]
+    if not best > 0:
+        return _refused("the unmasked content does not correlate anywhere")
+    start = np.clip(peak, 0, 2 * m)
+    limit = (f"shift at or beyond the search limit of {m * ps:g} nm"
+             if np.any(peak <= 0) or np.any(peak >= 2 * m) else "")
+    fit = _fit_shift(big, big_ok, mov, mov_ok, start)
+    if fit is None:                                  # the whole-pixel correlation tells why
+        return _refused(f"poor match: score {best:.2f} below {MIN_SCORE}" if best < MIN_SCORE
+                        else limit or "the sub-pixel fit did not converge")
     at, cov, score = fit
     shift = ps * np.array([f[0] - j0 + m - at[1], f[1] - i0 + m - at[0]])
-    back = _fit_back(big, big_ok, mov, mov_ok, peak)
+    back = _fit_back(big, big_ok, mov, mov_ok, start)
     spread = math.inf if back is None else float(np.abs(back - at).max())
     std = ps * math.sqrt((STD_FACTOR ** 2) * np.linalg.eigvalsh(cov)[-1] + STD_FLOOR ** 2
                          + (BACK_FACTOR * spread) ** 2)
-    second = _second_peak(ncc, peak)
+    searched = (slice(zero[0], zero[0] + 2 * m + 1), slice(zero[1], zero[1] + 2 * m + 1))
+    second = _second_peak(ncc, peak + zero, searched)
     reason = "ok"
     if not score >= MIN_SCORE:
         reason = f"poor match: score {score:.2f} below {MIN_SCORE}"
-    elif second >= AMBIGUITY * ncc[tuple(peak)]:
-        reason = f"ambiguous: a second peak reaches {second / ncc[tuple(peak)]:.2f} of the best"
+    elif second >= AMBIGUITY * best:
+        reason = f"ambiguous: a second peak reaches {second / best:.2f} of the best"
     elif _condition(mov, mov_ok) < MIN_CONDITION:
         reason = "ambiguous: the content varies along one direction only"
-    elif np.any(peak == 0) or np.any(peak == np.array(ncc.shape) - 1):
-        reason = f"shift at the search limit of {m * ps:g} nm"
+    elif limit:
+        reason = limit
     elif back is None:
         reason = "the fit the other way round did not converge"
     return Registration(shift, float(std), float(score), reason == "ok", reason)
@@ -249,35 +269,13 @@ def _level(z: np.ndarray, ok: np.ndarray) -> np.ndarray:
     return np.where(ok, flat - np.median(flat[ok]), 0.0)
 
 
-def _masked_ncc(big: np.ndarray, big_ok: np.ndarray, mov: np.ndarray, mov_ok: np.ndarray
-                ) -> np.ndarray:
-    """Normalised cross-correlation of ``mov`` placed at every whole-pixel offset inside
-    ``big`` ((2m + 1, 2m + 1) array), each over the pixels valid in both (Padfield
-    2012); NaN where they share fewer than half of ``mov``'s valid pixels."""
-    b, bb, a, aa = big_ok.astype(float), big * big_ok, mov_ok.astype(float), mov * mov_ok
-
-    def corr(x, t):
-        return correlate(x, t, mode="valid", method="fft")
-
-    n = np.round(corr(b, a))
-    sa, sb = corr(b, aa), corr(bb, a)
-    saa, sbb, sab = corr(b, aa * aa), corr(bb * bb, a), corr(bb, aa)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        num = sab - sa * sb / n
-        den = np.sqrt(np.maximum(saa - sa * sa / n, 0.0) * np.maximum(sbb - sb * sb / n, 0.0))
-        ncc = num / den
-    tiny = 1e-9 * max(float(np.abs(saa).max()), float(np.abs(sbb).max()), 1e-300)
-    ncc[(n < 0.5 * a.sum()) | (den <= tiny)] = np.nan
-    return np.clip(ncc, -1.0, 1.0)
-
-
-def _second_peak(ncc: np.ndarray, peak: np.ndarray) -> float:
-    """The highest local maximum (over 5 x 5) of ``ncc`` other than ``peak``'s."""
-    filled = np.where(np.isfinite(ncc), ncc, -np.inf)
-    local = (filled == ndimage.maximum_filter(filled, size=5, mode="constant", cval=-np.inf))
-    local &= np.isfinite(filled)
+def _second_peak(ncc: np.ndarray, peak: np.ndarray, searched: tuple[slice, slice]) -> float:
+    """The highest local maximum (over 5 x 5) of ``ncc`` within ``searched``, other than
+    the one at index ``peak``."""
+    local = ncc == ndimage.maximum_filter(ncc, size=5, mode="constant", cval=-np.inf)
     local[max(peak[0] - 2, 0):peak[0] + 3, max(peak[1] - 2, 0):peak[1] + 3] = False
-    return float(filled[local].max()) if local.any() else -1.0
+    values = ncc[searched][local[searched]]
+    return float(values.max()) if values.size else -1.0
 
 
 def _condition(z: np.ndarray, ok: np.ndarray) -> float:
