@@ -206,19 +206,21 @@ class CreepingOffset:
     Moves that ended ``linear_after`` s or more before ``t_ref`` creep slowly and
     smoothly there: they enter as their value and rate at ``t_ref`` (the error of that
     line over a push of ``T`` s is at most ``c |s| T² / (2 ln 10 linear_after²)`` a
-    move, 0.1 nm for a 2 µm move, ``T`` = 5 s). The recent ones are exact.
+    move, 0.1 nm for a 2 µm move, ``T`` = 5 s). The recent ones are exact. ``scale``
+    multiplies the history's amplitude (a filter that learnt it: ``(c + δc) / c``).
     """
 
     def __init__(self, thermal, velocity, t_ref: float, history: CreepHistory, epoch: float = 0.0,
-                 pending=(), linear_after: float = 30.0):
+                 pending=(), linear_after: float = 30.0, scale: float = 1.0):
         p = history.params
         self.t_ref = float(t_ref)
-        self.amplitude, self.tau = p.amplitude, p.tau
+        self.amplitude, self.tau = p.amplitude * float(scale), p.tau
         times = np.concatenate([history.times + epoch,
                                 np.array([t for t, _ in pending], float).reshape(-1)])
         steps = np.vstack([history.steps, np.array([s for _, s in pending], float).reshape(-1, 2)])
         old = times <= self.t_ref - linear_after
-        at_ref = history.frozen + creep_offset(self.t_ref, times[old], steps[old], self.amplitude, self.tau)
+        at_ref = history.frozen * float(scale) + creep_offset(self.t_ref, times[old], steps[old], self.amplitude,
+                                                             self.tau)
         rate = -(creep_rate(self.t_ref, times[old], steps[old], self.amplitude, self.tau)[:, None]
                  * _unit_rows(steps[old])).sum(axis=0)
         self.constant = np.asarray(thermal, float).reshape(2) + at_ref

@@ -11,23 +11,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from typing import NamedTuple
 
 import numpy as np
 
 from nanoasm.param import ParamError, number, param, validate
 
 from .creep import CreepHistory, CreepModelParams
-from .gating import (
-    Selection,
-    gate_threshold,
-    nis_sqrt,
-    select_consistent,
-    weighted_mean,
-)
-from .kalman import H_OFFSET, STATE_DIM, _check_state, process_noise_sqrt, symmetrize
+from .folding import Batch, Folded, fold, gram
+from .gating import gate_threshold, nis_sqrt, weighted_mean
+from .kalman import H_OFFSET, STATE_DIM, _check_state, process_noise_sqrt, symmetrize, transition
 from .records import HistoryEntry, JointMeasurement, Measurement, OffsetEstimate
-from .square_root import predict_sqrt, psd_sqrt, tria, update_sqrt
+from .square_root import predict_sqrt, psd_sqrt, sqrt_update_core, tria
 
 
 @dataclass(frozen=True)
@@ -98,30 +92,55 @@ class DriftFilter:
     P0 : (4, 4) array, optional
         Prior covariance; ``diag(offset_std², offset_std², velocity_std², velocity_std²)``
         by default.
+    statics : int
+        Static parameters after the drift state (``x0`` and ``P0`` then have ``4 +
+        statics`` components): constants that measurements may depend on (e.g. the
+        drift a reference image carried), estimated with the drift. Such a filter
+        measures through :meth:`measure_projected`.
+    start : float
+        Time of the prior, s after the epoch.
+    learn_creep : bool
+        Estimate the creep amplitude's error too, as a last static parameter of prior
+        ``creep.amplitude_std`` (appended to ``x0`` and ``P0``): the creep input is then
+        nominal and the offset is ``thermal + creep + δc g``, ``g`` the creep per unit
+        amplitude.
     """
 
     def __init__(self, params: DriftFilterParams | None = None, *, epoch: float = 0.0,
-                 x0: np.ndarray | None = None, P0: np.ndarray | None = None):
+                 x0: np.ndarray | None = None, P0: np.ndarray | None = None, statics: int = 0,
+                 start: float = 0.0, learn_creep: bool = False):
         self.params = params if params is not None else DriftFilterParams()
         number("epoch", epoch)
+        number("start", start, nonnegative=True)
+        self.statics = int(number("statics", statics, integer=True, lo=0))
         p = self.params
+        n = STATE_DIM + self.statics
+        self.learn_creep = bool(learn_creep)
         self.epoch = float(epoch)
-        self._tau = 0.0
-        self._x = np.zeros(STATE_DIM) if x0 is None else np.asarray(x0, float).copy()
-        if self._x.shape != (STATE_DIM,) or not np.all(np.isfinite(self._x)):
-            raise ValueError(f"x0 must be a finite (4,) array, got shape {self._x.shape}")
+        self._tau = float(start)
+        self._x = np.zeros(n) if x0 is None else np.asarray(x0, float).copy()
+        if self._x.shape != (n,) or not np.all(np.isfinite(self._x)):
+            raise ValueError(f"x0 must be a finite ({n},) array, got shape {self._x.shape}")
         if P0 is None:
+            if self.statics:
+                raise ValueError("P0 must be given with statics")
             P0 = np.diag([p.offset_std**2] * 2 + [p.velocity_std**2] * 2)
         P0 = np.asarray(P0, float)
-        if P0.shape != (STATE_DIM, STATE_DIM):
-            raise ValueError(f"P0 must be a (4, 4) array, got shape {P0.shape}")
+        if P0.shape != (n, n):
+            raise ValueError(f"P0 must be a ({n}, {n}) array, got shape {P0.shape}")
+        if self.learn_creep:             # the creep amplitude's error, last: its prior
+            self._x = np.append(self._x, 0.0)
+            P0 = np.block([[P0, np.zeros((n, 1))], [np.zeros((1, n)), np.array([[p.creep.amplitude_std**2]])]])
+            n += 1
+            self.statics += 1
         self._L = psd_sqrt(P0)
-        self.creep = CreepHistory(p.creep)
+        # learnt, the amplitude's uncertainty is the state's; the input itself is nominal
+        self.creep = CreepHistory(replace(p.creep, amplitude_std=0.0) if self.learn_creep else p.creep)
         self.history: list[HistoryEntry] = []
-        self._commit(0.0, 0.0, self._x, self._L, self._x, self._L, np.zeros((STATE_DIM, 0)), "start")
+        self._commit(self._tau, 0.0, self._x, self._L, self._x, self._L, np.zeros((n, 0)), "start")
         self.measurements: list[Measurement] = []
-        self._anchor = (0, 0.0)  # history index and tau of the last accepted state
-        self._streak: list[_Batch] = []  # batches rejected since then
+        self._anchor = (0, self._tau)  # history index and tau of the last accepted state
+        self._streak: list[Batch] = []  # batches rejected since then
         self.resumed_measurements = 0    # measurements made before a resume
         self._offset_cache: tuple | None = None
 
@@ -132,20 +151,30 @@ class DriftFilter:
         gating streak are not kept)."""
         c = self.creep
         return {"epoch": self.epoch, "tau": self._tau, "x": self._x.tolist(), "L": self._L.tolist(),
-                "measured": len(self.measurements),
+                "measured": len(self.measurements), "statics": self.statics - int(self.learn_creep),
+                "learn_creep": self.learn_creep,
                 "creep": {"frozen": c.frozen.tolist(), "times": c.times.tolist(), "steps": c.steps.tolist()}}
 
     @classmethod
     def from_state(cls, params: DriftFilterParams, state: dict) -> DriftFilter:
         """A filter that goes on from :meth:`state_dict`'s estimate."""
-        f = cls(params, epoch=float(state["epoch"]))
+        k, learn = int(state.get("statics", 0)), bool(state.get("learn_creep", False))
         tau = float(state["tau"])
         number("tau", tau)
-        x, L = _check_state(state["x"], state["L"])      # the factor L checked as P would be
+        if k or learn:
+            x, L = np.asarray(state["x"], float), np.asarray(state["L"], float)
+            n = STATE_DIM + k + int(learn)
+            if x.shape != (n,) or L.shape != (n, n) or not (np.all(np.isfinite(x)) and np.all(np.isfinite(L))):
+                raise ValueError(f"x and L must be finite with shapes ({n},) and ({n}, {n})")
+            m = n - int(learn)
+            f = cls(params, epoch=float(state["epoch"]), x0=x[:m], P0=np.eye(m), statics=k, learn_creep=learn)
+        else:
+            x, L = _check_state(state["x"], state["L"])      # the factor L checked as P would be
+            f = cls(params, epoch=float(state["epoch"]))
         for t, step in zip(state["creep"]["times"], state["creep"]["steps"]):
             f.creep.record(float(t), step)
         f.creep.frozen = np.asarray(state["creep"]["frozen"], float).reshape(2)
-        f._commit(tau, 0.0, x, L, x, L, np.zeros((STATE_DIM, 0)), "resume")
+        f._commit(tau, 0.0, x, L, x, L, np.zeros((x.shape[0], 0)), "resume")
         f._anchor = (len(f.history) - 1, tau)
         f.resumed_measurements = int(state.get("measured", 0))
         return f
@@ -158,17 +187,18 @@ class DriftFilter:
 
     @property
     def x(self) -> np.ndarray:
-        """(4,) array: current thermal-drift state ``[dx, dy, vx, vy]`` (a copy)."""
+        """(4 + statics,) array: current thermal-drift state ``[dx, dy, vx, vy]`` and the
+        static parameters (a copy)."""
         return self._x.copy()
 
     @property
     def P(self) -> np.ndarray:
-        """(4, 4) array: its covariance."""
-        return _gram(self._L)
+        """(n, n) array: its covariance."""
+        return gram(self._L)
 
     @property
     def P_sqrt(self) -> np.ndarray:
-        """(4, 4) array: lower-triangular factor of :attr:`P` (a copy)."""
+        """(n, n) array: lower-triangular factor of :attr:`P` (a copy)."""
         return self._L.copy()
 
     def _relative(self, t: float) -> tuple[float, float]:
@@ -181,11 +211,42 @@ class DriftFilter:
                              "only moves forward (use nanoasm.drift.smooth for the past)")
         return max(tau, self._tau), max(dt, 0.0)
 
+    def _sensitivity(self, tau: float) -> np.ndarray:
+        """``g``, (2,): the creep input per unit amplitude at ``tau`` (frozen part too)."""
+        a = self.params.creep.amplitude
+        return self.creep.offset(tau) / a if a > 0 else np.zeros(2)
+
+    def _rows(self, N: np.ndarray, static, tau: float) -> np.ndarray:
+        """The measurement matrix of components ``N offset + static θ`` at ``tau``: the
+        offset's rows, the static parameters', and the learnt creep amplitude's."""
+        m = N.shape[0]
+        user = self.statics - int(self.learn_creep)
+        S = np.zeros((m, user)) if static is None else np.asarray(static, float)
+        if S.shape != (m, user) or not np.all(np.isfinite(S)):
+            raise ValueError(f"static must be a finite ({m}, {user}) array")
+        parts = [N @ H_OFFSET, S]
+        if self.learn_creep:
+            parts.append((N @ self._sensitivity(tau))[:, None])
+        return np.hstack(parts)
+
+    def _predict(self, x: np.ndarray, L: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """Predict ``(x, L)`` over ``dt``; the static parameters stay as they are."""
+        p = self.params
+        if not self.statics:
+            return predict_sqrt(x, L, dt, p.q, p.q_offset)
+        F = np.eye(STATE_DIM + self.statics)
+        F[:STATE_DIM, :STATE_DIM] = transition(dt)
+        return F @ x, tria(np.hstack([F @ L, self._noise_sqrt(dt)]))
+
+    def _noise_sqrt(self, dt: float) -> np.ndarray:
+        p = self.params
+        Q = process_noise_sqrt(dt, p.q, p.q_offset)
+        return np.vstack([Q, np.zeros((self.statics, Q.shape[1]))])
+
     def _propagate(self, t: float):
         tau, dt = self._relative(t)
-        p = self.params
-        x, L = predict_sqrt(self._x, self._L, dt, p.q, p.q_offset)
-        return tau, dt, x, L, process_noise_sqrt(dt, p.q, p.q_offset)
+        x, L = self._predict(self._x, self._L, dt)
+        return tau, dt, x, L, self._noise_sqrt(dt)
 
     def _commit(self, tau, dt, x, L, x_prior, L_prior, Q_sqrt, kind, creep=None,
                 creep_sqrt=None) -> None:
@@ -194,7 +255,7 @@ class DriftFilter:
             creep, creep_sqrt = self.creep.offset(tau), self.creep.cov_sqrt(tau)
         self._tau, self._x, self._L = tau, x.copy(), L.copy()
         self.history.append(HistoryEntry(
-            self.epoch + tau, x.copy(), _gram(L), x_prior.copy(), _gram(L_prior), dt,
+            self.epoch + tau, x.copy(), gram(L), x_prior.copy(), gram(L_prior), dt,
             np.asarray(creep, float).copy(), creep_sqrt @ creep_sqrt.T, kind, L.copy(),
             L_prior.copy(), Q_sqrt))
 
@@ -207,7 +268,7 @@ class DriftFilter:
     def state_at(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """Predicted thermal state ``(x (4,), P (4, 4))`` at ``t``; the filter is unchanged."""
         _, _, x, L, _ = self._propagate(t)
-        return x, _gram(L)
+        return x, gram(L)
 
     def offset(self, t: float) -> OffsetEstimate:
         """Predicted offset at ``t`` (creep included) and its covariance; no mutation.
@@ -232,7 +293,8 @@ class DriftFilter:
             if len(known) >= 16:
                 known.clear()
             tau, _, x, L, _ = self._propagate(t)
-            known[t] = (x[:2] + c.offset(tau), _gram(np.hstack([L[:2], c.cov_sqrt(tau)])))
+            O = self._rows(np.eye(2), None, tau)
+            known[t] = (O @ x + c.offset(tau), gram(np.hstack([O @ L, c.cov_sqrt(tau)])))
         off, cov = known[t]
         return OffsetEstimate(off.copy(), cov.copy())
 
@@ -248,7 +310,7 @@ class DriftFilter:
         the executor decides the drift jumped (several lone measurements gated out)."""
         number("offset_std", offset_std, nonnegative=True)
         number("velocity_std", velocity_std, nonnegative=True)
-        extra = np.diag([offset_std] * 2 + [velocity_std] * 2)
+        extra = np.diag([offset_std] * 2 + [velocity_std] * 2 + [0.0] * self.statics)
         L = tria(np.hstack([self._L, extra]))
         self._commit(self._tau, 0.0, self._x, L, self._x, L, extra, "inflate")
         self._streak = []
@@ -302,9 +364,11 @@ class DriftFilter:
             ``readmitted`` is not empty, the objects of those earlier rejections did not
             move after all: the drift had jumped.
         """
+        if self.statics:
+            raise ValueError("a filter with static parameters measures through measure_projected")
         batch = self._batch(t, zs, Rs, labels)
         dt = batch.tau - self._tau
-        folded = _fold(self.params, self._x, self._L, dt, batch, None)
+        folded = fold(self.params, self._x, self._L, dt, batch, None)
         if not folded.sel.accepted.any():
             recovered = self._recover(batch)
             if recovered is not None:
@@ -318,7 +382,8 @@ class DriftFilter:
         return JointMeasurement(batch.t, folded.results, folded.sel.joint_nis, folded.sel.dof,
                                 folded.sel.drift_jump)
 
-    def measure_projected(self, t: float, z, directions, R=None, *, label: str | None = None) -> Measurement:
+    def measure_projected(self, t: float, z, directions, R=None, *, label: str | None = None,
+                          static=None) -> Measurement:
         """Fold components of the offset measured along unit ``directions`` at ``t``: a
         fixed feature's straight edge measures only the coordinate normal to it
         (``z_k = directions_k · offset + noise``). Gated alone (χ² with ``m`` dof); a
@@ -336,6 +401,9 @@ class DriftFilter:
         R : (m, m) array, optional
             Covariance of ``z`` (nm²); ``measurement_std² I`` by default.
         label : str, optional
+        static : (m, statics) array, optional
+            How ``z`` depends on the static parameters too (``z = N offset + static θ``),
+            e.g. the drift a reference image carried; none by default.
         """
         N = np.asarray(directions, float).reshape(-1, 2)
         z = np.asarray(z, float).reshape(-1)
@@ -352,9 +420,9 @@ class DriftFilter:
         p = self.params
         self.creep.prune(tau)
         creep, creep_sqrt = self.creep.offset(tau), self.creep.cov_sqrt(tau)
-        x_prior, L_prior = predict_sqrt(self._x, self._L, dt, p.q, p.q_offset)
-        Q_sqrt = process_noise_sqrt(dt, p.q, p.q_offset)
-        H = N @ H_OFFSET
+        H = self._rows(N, static, tau)
+        x_prior, L_prior = self._predict(self._x, self._L, dt)
+        Q_sqrt = self._noise_sqrt(dt)
         NC = N @ creep_sqrt
         R_total = symmetrize(R + NC @ NC.T)
         thermal = z - N @ creep
@@ -363,15 +431,57 @@ class DriftFilter:
         innovation = thermal - H @ x_prior
         score, threshold = nis_sqrt(innovation, S_sqrt), gate_threshold(m, p.gate_probability)
         ok = score <= threshold
-        x, L = (update_sqrt(x_prior, L_prior, thermal, R_total, H)[:2] if ok else (x_prior, L_prior))
+        if ok:
+            x, L = sqrt_update_core(x_prior, L_prior, thermal, np.linalg.cholesky(R_total), H)[:2]
+        else:
+            x, L = x_prior, L_prior
         self._commit(tau, dt, x, L, x_prior, L_prior, Q_sqrt, "measure", creep, creep_sqrt)
         if ok:
             self._streak = []
             self._anchor = (len(self.history) - 1, tau)
         result = Measurement(self.epoch + tau, z.copy(), R.copy(), ok, "accepted" if ok else "gated",
-                             score, threshold, innovation, _gram(S_sqrt), label, directions=N.copy())
+                             score, threshold, innovation, gram(S_sqrt), label, directions=N.copy())
         self.measurements.append(result)
         return result
+
+    def projected(self, t: float, directions, static=None) -> tuple[np.ndarray, np.ndarray]:
+        """What :meth:`measure_projected` would expect at ``t``: the predicted components
+        ``N offset + static θ`` (creep included) and their covariance (the creep
+        amplitude's uncertainty included); the filter is unchanged."""
+        N = np.asarray(directions, float).reshape(-1, 2)
+        tau, _, x, L, _ = self._propagate(t)
+        H = self._rows(N, static, tau)
+        A = np.hstack([H @ L, N @ self.creep.cov_sqrt(tau)])
+        return H @ x + N @ self.creep.offset(tau), gram(A)
+
+    def information(self, t: float, directions, R, static=None) -> float:
+        """How much measuring ``N offset + static θ`` at ``t`` with covariance ``R``
+        would shrink the offset's uncertainty there: the reduction of its covariance's
+        trace (nm²); the filter is unchanged."""
+        N = np.asarray(directions, float).reshape(-1, 2)
+        tau, _, x, L, _ = self._propagate(t)
+        H = self._rows(N, static, tau)
+        O = self._rows(np.eye(2), None, tau)
+        cc = N @ self.creep.cov_sqrt(tau)
+        P = gram(L)
+        S = H @ P @ H.T + cc @ cc.T + np.asarray(R, float)
+        cross = O @ P @ H.T + self.creep.cov_sqrt(tau) @ cc.T
+        return float(np.trace(cross @ np.linalg.solve(S, cross.T)))
+
+    def forget_offset(self, t: float, std: float) -> None:
+        """Forget where the offset was (a drift jump, a long pause): predicted to ``t``, its
+        standard deviation becomes ``std`` (nm) per axis, uncorrelated with the velocity
+        and the static parameters, which are kept; the next measurement places it."""
+        number("std", std, positive=True)
+        tau, dt = self._relative(t)
+        x, L = self._predict(self._x, self._L, dt)
+        P = gram(L)
+        P[:2, :] = 0.0
+        P[:, :2] = 0.0
+        P[:2, :2] = np.eye(2) * std**2
+        self._commit(tau, dt, x, psd_sqrt(P), x, L, self._noise_sqrt(dt), "reset")
+        self._streak = []
+        self._anchor = (len(self.history) - 1, tau)
 
     def reinitialise(self, t: float, offset, cov, *, velocity_std: float = 0.0) -> None:
         """Start the offset afresh at ``t`` from an absolute measurement (``offset`` nm,
@@ -386,19 +496,20 @@ class DriftFilter:
                 and np.allclose(cov, cov.T) and np.linalg.eigvalsh(cov)[0] > 0):
             raise ValueError("offset must be finite (2,) and cov symmetric positive definite (2, 2)")
         tau, dt = self._relative(t)
-        p = self.params
         self.creep.prune(tau)
-        x_prior, L_prior = predict_sqrt(self._x, self._L, dt, p.q, p.q_offset)
+        x_prior, L_prior = self._predict(self._x, self._L, dt)
         x = x_prior.copy()
         x[:2] = offset - self.creep.offset(tau)
-        P = np.zeros((STATE_DIM, STATE_DIM))
+        P = gram(L_prior)
+        P[:2, :] = 0.0
+        P[:, :2] = 0.0
         P[:2, :2] = cov
-        P[2:, 2:] = _gram(L_prior)[2:, 2:] + np.eye(2) * velocity_std**2
-        self._commit(tau, dt, x, psd_sqrt(P), x_prior, L_prior, process_noise_sqrt(dt, p.q, p.q_offset), "reset")
+        P[2:4, 2:4] += np.eye(2) * velocity_std**2
+        self._commit(tau, dt, x, psd_sqrt(P), x_prior, L_prior, self._noise_sqrt(dt), "reset")
         self._streak = []
         self._anchor = (len(self.history) - 1, tau)
 
-    def _batch(self, t, zs, Rs, labels) -> _Batch:
+    def _batch(self, t, zs, Rs, labels) -> Batch:
         zs = np.asarray(zs, float).reshape(-1, 2)
         n = zs.shape[0]
         if n == 0 or not np.all(np.isfinite(zs)):
@@ -418,14 +529,14 @@ class DriftFilter:
         self.creep.prune(tau)
         creep = self.creep.offset(tau)
         creep_sqrt = self.creep.cov_sqrt(tau)
-        return _Batch(tau, self.epoch + tau, zs.copy(), zs - creep, Rs.copy(), creep, creep_sqrt,
+        return Batch(tau, self.epoch + tau, zs.copy(), zs - creep, Rs.copy(), creep, creep_sqrt,
                       labels)
 
-    def _commit_fold(self, batch: _Batch, dt: float, folded: _Folded) -> None:
+    def _commit_fold(self, batch: Batch, dt: float, folded: Folded) -> None:
         self._commit(batch.tau, dt, folded.x, folded.L, folded.x_prior, folded.L_prior,
                      folded.Q_sqrt, "measure", batch.creep, batch.creep_sqrt)
 
-    def _recover(self, batch: _Batch) -> JointMeasurement | None:
+    def _recover(self, batch: Batch) -> JointMeasurement | None:
         """Re-run the streak of rejected batches from the last accepted state with the
         prior widened by the first one's innovation (an offset jump, or the velocity
         error that would produce it); adopt it when it accepts every measurement."""
@@ -446,7 +557,7 @@ class DriftFilter:
             widen[2:, 1] = e / (first.tau - tau)
         folds = []
         for j, b in enumerate(streak):
-            f = _fold(p, x, L, b.tau - tau, b, widen if j == 0 else None)
+            f = fold(p, x, L, b.tau - tau, b, widen if j == 0 else None)
             if not f.sel.accepted.all():
                 return None
             folds.append(f)
@@ -462,72 +573,3 @@ class DriftFilter:
         self.measurements.extend(readmitted + jumped[-1])
         last = folds[-1].sel
         return JointMeasurement(batch.t, jumped[-1], last.joint_nis, last.dof, True, readmitted)
-
-
-class _Batch(NamedTuple):
-    """Offsets measured at one time, with the creep input at that time."""
-
-    tau: float
-    t: float
-    zs: np.ndarray
-    thermal: np.ndarray
-    Rs: np.ndarray
-    creep: np.ndarray
-    creep_sqrt: np.ndarray
-    labels: tuple
-
-
-class _Folded(NamedTuple):
-    x: np.ndarray
-    L: np.ndarray
-    x_prior: np.ndarray
-    L_prior: np.ndarray
-    Q_sqrt: np.ndarray
-    sel: Selection
-    results: tuple[Measurement, ...]
-
-
-def _fold(p: DriftFilterParams, x0: np.ndarray, L0: np.ndarray, dt: float, batch: _Batch,
-          widen: np.ndarray | None) -> _Folded:
-    """Predict ``(x0, L0)`` over ``dt``, widen the prior by the columns ``widen``, select
-    the consistent offsets of ``batch`` and fold them in. Pure."""
-    x_prior, L_prior = predict_sqrt(x0, L0, dt, p.q, p.q_offset)
-    Q_sqrt = process_noise_sqrt(dt, p.q, p.q_offset)
-    if widen is not None:
-        L_prior = tria(np.hstack([L_prior, widen]))
-        Q_sqrt = np.hstack([Q_sqrt, widen])
-    prior_sqrt = np.hstack([L_prior[:2], batch.creep_sqrt])  # creep error: common to all
-    sel = select_consistent(x_prior[:2], prior_sqrt, batch.thermal, batch.Rs,
-                            p.gate_probability, p.min_consensus)
-    if sel.drift_jump:  # widen the prior by the consensus innovation
-        column = np.zeros((STATE_DIM, 1))
-        column[:2, 0] = sel.jump
-        L_prior = tria(np.hstack([L_prior, column]))
-        Q_sqrt = np.hstack([Q_sqrt, column])
-        prior_sqrt = np.hstack([L_prior[:2], batch.creep_sqrt])
-    x, L = x_prior, L_prior
-    idx = np.flatnonzero(sel.accepted)
-    if idx.size:
-        creep_cov = batch.creep_sqrt @ batch.creep_sqrt.T
-        R_block = np.kron(np.ones((idx.size, idx.size)), creep_cov)
-        for j, i in enumerate(idx):
-            R_block[2 * j:2 * j + 2, 2 * j:2 * j + 2] += batch.Rs[i]
-        x, L = update_sqrt(x_prior, L_prior, batch.thermal[idx].reshape(-1), R_block,
-                           np.vstack([H_OFFSET] * idx.size))[:2]
-    threshold = gate_threshold(2, p.gate_probability)
-    n = batch.zs.shape[0]
-    results = []
-    for i in range(n):
-        innovation = batch.thermal[i] - x_prior[:2]
-        S_sqrt = tria(np.hstack([prior_sqrt, np.linalg.cholesky(batch.Rs[i])]))
-        ok = bool(sel.accepted[i])
-        reason = "accepted" if ok else ("gated" if n == 1 else "outlier")
-        results.append(Measurement(batch.t, batch.zs[i].copy(), batch.Rs[i].copy(), ok, reason,
-                                   nis_sqrt(innovation, S_sqrt), threshold, innovation,
-                                   _gram(S_sqrt), batch.labels[i], ok and sel.drift_jump))
-    return _Folded(x, L, x_prior, L_prior, Q_sqrt, sel, tuple(results))
-
-
-def _gram(L: np.ndarray) -> np.ndarray:
-    """``L Lᵀ``, exactly symmetric."""
-    return symmetrize(L @ L.T)

@@ -872,3 +872,101 @@ def test_reinitialise_sets_the_offset_and_keeps_the_velocity():
     assert np.allclose(f.P[:2, 2:], 0.0) and f.history[-1].kind == "reset"
     m = f.measure(1830.0, v * 1830.0 + [300.0, -120.0], np.eye(2))
     assert m.accepted
+
+
+# -- static parameters: what a reference image carried ---------------------------------------
+def _image_filter(t0=1000.0):
+    """A filter with two static parameters: the velocity ``w`` while a reference image was
+    scanned (image row of time τ shows a point displaced by ``w τ``), known to 0.05 nm/s."""
+    v = np.array([0.3, -0.2])
+    P0 = np.diag([4.0, 4.0, 0.05**2, 0.05**2, 0.05**2, 0.05**2])
+    P0[2:4, 4:] = P0[4:, 2:4] = np.eye(2) * 0.05**2          # one velocity, then and now
+    x0 = np.concatenate([v * t0 + [3.0, -4.0], v + [0.04, -0.03], v + [0.04, -0.03]])
+    return DriftFilter(DriftFilterParams(q=1e-8, q_offset=1e-6), x0=x0, P0=P0, statics=2, start=t0), v
+
+
+def test_static_parameters_learn_what_the_reference_image_carried_and_stay_consistent():
+    f, v = _image_filter()
+    rng = np.random.default_rng(3)
+    taus = rng.uniform(0.0, 1000.0, 12)                 # twelve references on different rows
+    nis = []
+    for k in range(240):
+        t = 1000.0 + 20.0 * (k + 1)
+        tau = taus[k % 12]
+        n = np.array([[1.0, 0.0]]) if k % 2 else np.array([[0.0, 1.0]])
+        truth = n @ (v * t) - n @ (v * tau) + rng.normal(0.0, 1.0, 1)
+        m = f.measure_projected(t, truth, n, [[1.0]], static=-tau * n)
+        nis.append(m.nis)
+    assert np.allclose(f.x[4:], v, atol=0.004) and np.allclose(f.x[2:4], v, atol=0.004)
+    assert abs(np.mean(nis) - 1.0) < 0.35                 # one dof, consistent throughout
+    mean, cov = f.projected(f.time, np.eye(2), static=-500.0 * np.eye(2))
+    assert np.allclose(mean, v * f.time - v * 500.0, atol=3.0) and np.all(np.isfinite(cov))
+
+
+def test_forget_offset_lets_the_next_measurement_place_it_and_keeps_the_rest():
+    f, v = _image_filter()
+    f.measure_projected(1010.0, v * 1010.0 - v * 200.0, np.eye(2), np.eye(2), static=-200.0 * np.eye(2))
+    statics, vel = f.x[4:], f.x[2:4]
+    f.forget_offset(1020.0, 1000.0)
+    assert np.allclose(f.P[:2, :2], np.eye(2) * 1e6) and np.allclose(f.P[:2, 2:], 0.0)
+    assert np.allclose(f.x[4:], statics) and np.allclose(f.x[2:4], vel)
+    jumped = v * 1030.0 + [300.0, -200.0]
+    m = f.measure_projected(1030.0, jumped - v * 100.0, np.eye(2), np.eye(2), static=-100.0 * np.eye(2))
+    assert m.accepted and np.allclose(f.offset(1030.0).offset, jumped, atol=6.0)
+
+
+def test_a_filter_with_statics_round_trips_and_refuses_whole_offset_batches():
+    f, v = _image_filter()
+    f.measure_projected(1010.0, v * 1010.0, np.eye(2), np.eye(2), static=np.zeros((2, 2)))
+    back = DriftFilter.from_state(f.params, f.state_dict())
+    assert back.statics == 2 and np.allclose(back.x, f.x) and np.allclose(back.P, f.P)
+    with pytest.raises(ValueError, match="measure_projected"):
+        f.measure(1020.0, v * 1020.0)
+    with pytest.raises(ValueError, match="static"):
+        f.measure_projected(1020.0, [1.0], [[1.0, 0.0]], [[1.0]], static=np.zeros((1, 3)))
+
+
+def _creep_truth(amplitude, moves, t):
+    return creep_offset(t, [m[0] for m in moves], [m[1] for m in moves], amplitude, 0.1)
+
+
+def test_a_filter_learns_the_creep_amplitude_it_was_wrong_about():
+    """Truth creeps 30 % more than nominal; a 3 µm move a minute, offsets measured every
+    20 s with 1 nm noise. Learning the amplitude beats treating its error as noise."""
+    rng = np.random.default_rng(8)
+    nominal = CreepModelParams(amplitude=0.01, tau=0.1, amplitude_std=0.003, rate_tol=1e-6)
+    runs = {}
+    for learn in (False, True):
+        f = DriftFilter(DriftFilterParams(q=1e-8, q_offset=1e-4, creep=nominal), learn_creep=learn,
+                        x0=np.zeros(4), P0=np.diag([1.0, 1.0, 1e-4, 1e-4]))
+        moves, errs, nis = [], [], []
+        for k in range(1, 90):
+            t = 20.0 * k
+            if k % 3 == 0:
+                step = np.array([3000.0, 0.0]) * (1 if k % 6 else -1)
+                moves.append((t - 1.0, step))
+                f.record_move(t - 1.0, step)
+            truth = _creep_truth(0.013, moves, t)
+            m = f.measure(t, truth + rng.normal(0, 1.0, 2), np.eye(2)) if not learn else \
+                f.measure_projected(t, truth + rng.normal(0, 1.0, 2), np.eye(2), np.eye(2))
+            nis.append(m.nis)
+            errs.append(np.hypot(*(f.offset(t + 19.0).offset - _creep_truth(0.013, moves, t + 19.0))))
+        runs[learn] = (f, np.sqrt(np.mean(np.square(errs[30:]))), np.mean(nis[30:]))
+    f, err_learnt, nis_learnt = runs[True]
+    assert abs(f.x[-1] - 0.003) < 0.0005                  # the amplitude's error, learnt
+    assert err_learnt < 0.5 * runs[False][1]
+    assert nis_learnt < 4.0
+    back = DriftFilter.from_state(f.params, f.state_dict())
+    assert back.learn_creep and np.allclose(back.x, f.x)
+    assert np.allclose(back.offset(2000.0).offset, f.offset(2000.0).offset)
+
+
+def test_information_is_the_offsets_trace_reduction_a_measurement_would_bring():
+    f = DriftFilter(DriftFilterParams(q=0.0, q_offset=0.0), x0=np.zeros(4), P0=np.diag([100.0, 25.0, 1e-9, 1e-9]))
+    R = np.eye(2) * 4.0
+    assert f.information(0.0, np.eye(2), R) == pytest.approx(100 - 400 / 104 + 25 - 100 / 29)
+    assert f.information(0.0, [[1.0, 0.0]], [[4.0]]) == pytest.approx(100 - 400 / 104)   # an edge: x alone
+    assert f.information(0.0, [[0.0, 1.0]], [[4.0]]) == pytest.approx(25 - 100 / 29)
+    before = f.offset(0.0).cov
+    f.measure_projected(0.0, [0.0], [[1.0, 0.0]], [[4.0]])
+    assert np.trace(before) - np.trace(f.offset(0.0).cov) == pytest.approx(100 - 400 / 104)
