@@ -281,7 +281,7 @@ def plan_cmd(
     """Assign objects to slots and plan the pushes (plan v1)."""
     from nanoasm.cad.layout import load_layout
     from nanoasm.planner.core import plan_assembly
-    from nanoasm.planner.options import PLANNERS, PlanOptions
+    from nanoasm.planner.options import PlanOptions
     from nanoasm.world.environment import load_environment
 
     if output.suffix.lower() != ".json":
@@ -491,8 +491,8 @@ def _print_summary(layout, outcome) -> None:
 
 @app.command("sweep")
 def sweep_cmd(
-    families: Annotated[str, typer.Option(help="Scene families, comma-separated: tiny, sparse, dense, "
-                                               "rods, mixed, or all.")] = "sparse,dense,rods,mixed",
+    families: Annotated[str, typer.Option(help="Scene families, comma-separated: tiny, sparse, dense, rods, "
+                                               "mixed, device, allpushed, rodgap, or all.")] = "sparse,dense,rods,mixed",
     seeds: Annotated[str, typer.Option(help="Seeds: numbers and ranges, e.g. 1-5 or 1,4,9.")] = "1-3",
     strategies: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full, anchor "
                                                  "(comma-separated), or all.")] = "full",

@@ -217,6 +217,18 @@ def test_rodgap(seed):
 
 
 @pytest.mark.parametrize("name", NEW)
+@pytest.mark.parametrize("seed", [1, 2, 3, 4, 5])
+def test_the_newer_families_keep_their_objects_off_the_area_edge_by_a_full_scans_drift(name, seed):
+    scene, _ = family_case(name, seed)
+    fam = family(name)
+    scan_drift = 0.6 * scene.area[0] / 10.0          # 0.6 nm/s over a 10 nm-pixel full scan, 1 s a line
+    assert fam.border >= 0.7 * scan_drift
+    for o in scene.objects:
+        x0, y0, x1, y1 = o.bounds()
+        assert min(x0, y0, scene.area[0] - x1, scene.area[1] - y1) >= fam.border - 1e-9, o.id
+
+
+@pytest.mark.parametrize("name", NEW)
 def test_a_full_scan_finds_the_electrodes_and_the_wire(name):
     from nanoasm.world.identify import identify
     from nanoasm.world.sim import SimulatedAFM

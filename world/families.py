@@ -32,7 +32,9 @@ alone. No object starts within 100 nm of a slot, and every kind of slot has at l
 spare object that fits it, but in ``allpushed`` and ``rodgap``, where objects and slots
 are as many and every object must move (else the scene is drawn again from a seed
 derived from the family's; the counts of the first five are before the objects near
-slots and electrodes are taken out).
+slots and electrodes are taken out). In the last three every object also keeps clear
+of the area's edge by the drift of a whole full scan (``border``: 450-700 nm), so none
+that the layout needs is cut by the image border.
 
 Drift: a steady velocity of ``drift`` nm/s in a direction drawn from the seed, plus the
 world's default random walk; unless given, 0.3 nm/s for the first five families and a
@@ -104,6 +106,9 @@ class Family:
     rod_size: tuple[Point, Point] = ((500.0, 700.0), (60.0, 80.0))   # length and diameter ranges
     wire: bool = False
     speeds: Point = (DEFAULT_DRIFT, DEFAULT_DRIFT)
+    #: Least distance (nm) from an object to the area's edge: the drift of a whole full
+    #: scan, so that no object the layout needs is cut by the image border.
+    border: float = 0.0
 
     def slots(self) -> tuple[Body, ...]:
         return self.layout(self.side / 2)
@@ -119,11 +124,11 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
     Family("rods", 4000.0, 10, fs.rod_between, rods=4),
     Family("mixed", 5000.0, 24, fs.bowtie, rods=3, electrodes=(1200.0, 600.0)),
     Family("device", 8000.0, 30, fs.device, rods=8, electrodes=(1400.0, 2000.0), keep=(12, 2),
-           rod_size=((1150.0, 1300.0), (80.0, 100.0)), wire=True, speeds=NEW_SPEEDS),
+           rod_size=((1150.0, 1300.0), (80.0, 100.0)), wire=True, speeds=NEW_SPEEDS, border=600.0),
     Family("allpushed", 6000.0, 24, fs.grid3, electrodes=(1600.0, 2000.0), keep=(9, 0), spare=False,
-           speeds=NEW_SPEEDS),
+           speeds=NEW_SPEEDS, border=450.0),
     Family("rodgap", 10000.0, 0, fs.rod_row, rods=8, electrodes=(2400.0, 2000.0), keep=(0, 3),
-           spare=False, rod_size=((1200.0, 1400.0), (90.0, 110.0)), speeds=NEW_SPEEDS),
+           spare=False, rod_size=((1200.0, 1400.0), (90.0, 110.0)), speeds=NEW_SPEEDS, border=700.0),
 )}
 
 
@@ -204,9 +209,12 @@ def family_case(name: str, seed: int, drift: float | None = None) -> tuple[Scene
     pads = shapely.union_all([shapely.Polygon(q) for q in polygons]) if polygons else None
     wires = (fs.wire(fam.side, fam.electrodes[1], np.random.default_rng([seed, 13])),) if fam.wire else ()
 
+    inner = shapely.box(fam.border, fam.border, fam.side - fam.border, fam.side - fam.border)
+
     def clear(o: Body) -> bool:
         return (_clear_of(o, slots, SLOT_CLEARANCE) and _clear_of(o, wires, spec.gap)
-                and (pads is None or shapely.distance(o.geometry(), pads) >= o.radius + spec.gap))
+                and (pads is None or shapely.distance(o.geometry(), pads) >= o.radius + spec.gap)
+                and (fam.border == 0.0 or inner.contains(o.geometry().buffer(o.radius))))
 
     for attempt in range(ATTEMPTS):
         base = random_scene(spec, seed + 1_000_003 * attempt)

@@ -98,12 +98,13 @@ def electrodes(side: float, gap: float, height: float) -> tuple[Polygon, Polygon
 
 def wire(side: float, height: float, rng: np.random.Generator) -> Body:
     """The ``WIRE`` lying roughly along x above or below pads ``height`` tall (at least
-    800 nm from them and from the area's edge), within 10° of the x axis."""
+    800 nm from them and from the area's edge, 600 nm beyond its ends), within 10° of
+    the x axis."""
     length, d = WIRE
     c = side / 2
     below = rng.random() < 0.5
     y = rng.uniform(c + height / 2 + 800, side - 800)
-    x = rng.uniform(length / 2 + 200, side - length / 2 - 200)
+    x = rng.uniform(length / 2 + 700, side - length / 2 - 700)
     angle = rng.uniform(-10.0, 10.0)
     at = (round(float(x), 3), round(float(side - y if below else y), 3))
     return Body("w1", "rod", at, d, round(float(angle) % 180.0, 3), length)
