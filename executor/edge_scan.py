@@ -247,7 +247,7 @@ class EdgeScanResult:
 
 
 def edge_pattern(sites_scanner: Sequence, reach: float, *, spacing: float = 1.0,
-                 height: float | None = None, site_stds=None
+                 height: float | None = None, site_stds=None, agree: bool = True
                  ) -> Generator[ScanLine, np.ndarray, EdgeScanResult]:
     """Scan one line across each edge site and measure how far its step has moved.
 
@@ -273,6 +273,9 @@ def edge_pattern(sites_scanner: Sequence, reach: float, *, spacing: float = 1.0,
     site_stds : float or (m,) array, optional
         1-sigma of the sites' points along their normals (nm, :attr:`EdgeSite.std`):
         added to each line's std, so the offsets' stds and the agreement test hold it.
+    agree : bool
+        Whether two sites of one edge must agree (False when their points may still
+        differ by an unknown amount, e.g. the drift between their full-scan rows).
 
     Returns
     -------
@@ -291,7 +294,7 @@ def edge_pattern(sites_scanner: Sequence, reach: float, *, spacing: float = 1.0,
         np.asarray(site_stds, float), (len(sites),)).copy()
     if not (np.all(np.isfinite(extra)) and np.all(extra >= 0)):
         raise ValueError(f"site_stds must be non-negative and finite, got {site_stds!r}")
-    return _edge_lines(sites, reach, spacing, height, extra)
+    return _edge_lines(sites, reach, spacing, height, extra, bool(agree))
 
 
 def _scanner_site(k: int, site) -> tuple[np.ndarray, np.ndarray, float]:
@@ -303,7 +306,7 @@ def _scanner_site(k: int, site) -> tuple[np.ndarray, np.ndarray, float]:
             number(f"sites_scanner[{k}] height", h, positive=True))
 
 
-def _edge_lines(sites, reach, spacing, height, extra):
+def _edge_lines(sites, reach, spacing, height, extra, agree):
     m = len(sites)
     offsets, stds, ok = np.full(m, np.nan), np.full(m, np.nan), np.zeros(m, bool)
     steps, samples = [], 0
@@ -321,7 +324,7 @@ def _edge_lines(sites, reach, spacing, height, extra):
             offsets[k] = step.position - reach
             stds[k] = math.hypot(step.std, extra[k])
     reason = next((f"line E{k}: {s.reason}" for k, s in enumerate(steps) if not s.found), "found")
-    if reason == "found":
+    if reason == "found" and agree:
         reason = _disagreement(sites, offsets, stds)
     return EdgeScanResult(reason == "found", offsets, stds, ok, reason, m, samples, tuple(steps))
 

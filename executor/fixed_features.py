@@ -34,9 +34,9 @@ from nanoasm.instrument import HeightImage
 from nanoasm.param import number
 
 from .edges import _robust_std
-from .scan_lines import perp, point, wedge
+from .feature_types import EdgeSite, Feature
+from .scan_lines import perp, wedge
 
-KINDS = ("edge", "corner")
 #: Profiles across the edge per full-scan site, one pixel apart along the edge.
 BAND = 5
 #: Step of the samples along a full-scan profile (pixels).
@@ -53,69 +53,8 @@ MAX_STRAY = 0.3
 HEIGHT_TOLERANCE = 0.3
 #: Pixel-phase error of a full-scan crossing (pixels, 1-sigma; see the module docstring).
 PIXEL_FLOOR = 0.08
-
-
-# ---------------------------------------------------------------- value types
-
-@dataclass(frozen=True)
-class EdgeSite:
-    """Where the half-height crossing of a straight obstacle edge lies in the full scan.
-
-    Attributes
-    ----------
-    point : (x, y)
-        The crossing (nm, the image's frame = the layout frame).
-    normal : (nx, ny)
-        Unit normal of the edge, from the obstacle (high side) to the substrate.
-    height : float
-        Step height (nm) measured there.
-    std : float
-        1-sigma of the point's coordinate along ``normal`` (nm).
-    row : float
-        Mean image row index of the pixels the crossing was read from (the caller turns
-        it into the time the row was scanned, to take out the drift during the scan).
-    """
-
-    point: tuple[float, float]
-    normal: tuple[float, float]
-    height: float
-    std: float
-    row: float
-
-    def __post_init__(self) -> None:
-        p = point("point", self.point)
-        n = point("normal", self.normal)
-        if abs(math.hypot(*n) - 1.0) > 1e-6:
-            raise ValueError(f"normal must be a unit vector, got {self.normal!r}")
-        object.__setattr__(self, "point", (float(p[0]), float(p[1])))
-        object.__setattr__(self, "normal", (float(n[0]), float(n[1])))
-        object.__setattr__(self, "height", number("height", self.height, positive=True))
-        object.__setattr__(self, "std", number("std", self.std, positive=True))
-        object.__setattr__(self, "row", number("row", self.row))
-
-
-@dataclass(frozen=True)
-class Feature:
-    """A fixed feature: ``"edge"`` (two sites on one straight edge: one coordinate,
-    checked twice) or ``"corner"`` (one site on each edge of a sharp corner: both)."""
-
-    id: str
-    kind: str
-    obstacle: int
-    sites: tuple[EdgeSite, ...]
-
-    def __post_init__(self) -> None:
-        if self.kind not in KINDS:
-            raise ValueError(f"kind must be one of {KINDS}, got {self.kind!r}")
-        if not isinstance(self.id, str) or not self.id:
-            raise ValueError(f"id must be a non-empty string, got {self.id!r}")
-        if not self.sites or not all(isinstance(s, EdgeSite) for s in self.sites):
-            raise ValueError("sites must be a non-empty tuple of EdgeSite")
-        object.__setattr__(self, "sites", tuple(self.sites))
-
-    def normals(self) -> np.ndarray:
-        """The sites' normals, (m, 2) array."""
-        return np.array([s.normal for s in self.sites])
+#: How far (nm) from a corner its rounding (the tip's and the pixels') may reach along an edge.
+CORNER_ROUNDING = 15.0
 
 
 # ---------------------------------------------------------------- polygon sides
@@ -250,7 +189,7 @@ def _refine(scope: _Scope, a: np.ndarray, b: np.ndarray, min_edge: float) -> _Si
     return _Side(q, u2, n2, float(np.dot(b - q, u2)))
 
 
-def _site(scope: _Scope, side: _Side, t: float, height: float, ps: float) -> EdgeSite | None:
+def _site(scope: _Scope, side: _Side, t: float, height: float, ps: float, room: float) -> EdgeSite | None:
     """The crossing of ``side`` at ``t`` read from :data:`BAND` profiles, or None when they
     disagree, the step is not the obstacle's, or the band leaves the image."""
     k = np.arange(BAND) - (BAND - 1) / 2
@@ -267,7 +206,8 @@ def _site(scope: _Scope, side: _Side, t: float, height: float, ps: float) -> Edg
     std = math.hypot(float(np.std(c, ddof=1)) / math.sqrt(BAND), PIXEL_FLOOR * ps)
     p = side.q + t * side.u + mid * side.n
     row = float(np.mean((pts[:, 1] - scope.image.origin[1]) / ps - 0.5))
-    return EdgeSite((float(p[0]), float(p[1])), (float(side.n[0]), float(side.n[1])), step, std, row)
+    return EdgeSite((float(p[0]), float(p[1])), (float(side.n[0]), float(side.n[1])), step, std, row,
+                    max(room, 0.0))
 
 
 def _scope(image: HeightImage, poly: shapely.Polygon, others: shapely.Geometry) -> _Scope:
@@ -355,13 +295,14 @@ def find_features(image: HeightImage, obstacles: Sequence, *, min_edge: float | 
                 continue
             s = max(dist, side.length / 4)
             if side.length - 2 * s >= BAND * ps:
-                add("edge", k, [_site(scope, side, t, height, ps) for t in (s, side.length - s)])
+                add("edge", k, [_site(scope, side, t, height, ps, s - BAND * ps / 2) for t in (s, side.length - s)])
             nxt, path = _next_side(sides, runs, ring, r)
             corner = None if nxt is None or path > gap else _corner(side, nxt, lo, hi)
             if corner is not None:
                 t1 = float(np.dot(corner - side.q, side.u)) - dist
                 t2 = float(np.dot(corner - nxt.q, nxt.u)) + dist
-                add("corner", k, [_site(scope, side, t1, height, ps), _site(scope, nxt, t2, height, ps)])
+                room = dist - max(CORNER_ROUNDING, 1.5 * ps)
+                add("corner", k, [_site(scope, side, t1, height, ps, room), _site(scope, nxt, t2, height, ps, room)])
     return tuple(features)
 
 

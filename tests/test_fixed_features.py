@@ -14,7 +14,8 @@ import shapely
 
 from nanoasm.bodies import Body
 from nanoasm.executor.edge_scan import EdgeScanResult, edge_pattern, locate_step, pattern_samples
-from nanoasm.executor.fixed_features import EdgeSite, Feature, find_features
+from nanoasm.executor.feature_types import EdgeSite, Feature
+from nanoasm.executor.fixed_features import find_features
 from nanoasm.executor.scan_lines import ScanLine, run_pattern
 from nanoasm.world.environment import EnvObstacle
 from nanoasm.world.identify import identify
