@@ -37,6 +37,7 @@ from .engine import Msg
 from .estimators import estimator_for
 from .motion_steps import travel_to
 from .pushing import push
+from .landmarks import Landmarks, moved_area
 from .references import References
 from .checkpoints import checkpoint, restore
 from .strategy import ExecOptions
@@ -117,6 +118,11 @@ class Assembly:
             row = min(max(o.at[1] / (region_side / pixels), 0.0), pixels - 1.0)
             ctx.belief.seen[o.id].t = t0 + (row + 0.5) * line_time
         ctx.refs = References.of_scan(env.objects, ctx.belief.seen)
+        ctx.full_scan, ctx.env_objects = image, env.objects
+        if drift.uses_landmarks:
+            ctx.landmarks = Landmarks.of_scan(image, env.obstacles, (t0, line_time))
+            yield Msg("event", (f"{len(ctx.landmarks.features)} fixed feature(s) of the obstacles "
+                                f"as drift references",))
         # the drift velocity first: the plan needs the objects where they are, not where
         # the full scan's rows put them (hundreds of nm apart over a frame)
         yield from bootstrap(ctx)
@@ -128,6 +134,9 @@ class Assembly:
         drift.after_plan(plan, ctx.belief, self.layout.area)
         ops = list(plan.operations)
         ctx.moving = {op.object for op in ops}
+        if drift.uses_landmarks:
+            ctx.landmarks.choose_windows(image, self.options.relocalise_window,
+                                         avoid=moved_area(env, ops, self.layout))
         self.course.follow(self.environment(), ops)
         self.env, self.first_plan = env, plan
         ledger.wall["execute"] += time.perf_counter() - t_wall - ledger.wall["identify"] - ledger.wall["plan"]
@@ -140,6 +149,7 @@ class Assembly:
         the time the run stood still."""
         ops, done, corrections = restore(self, config, state)
         t = yield Msg("clock")
+        self.ctx.drift.resumed(t - float(state["t"]))
         yield Msg("event", (f"resumed from the checkpoint after push {self.ctx.ledger.counts['pushes']} "
                             f"({t - float(state['t']):.0f} s later): {len(ops)} push(es) remain",))
         return (yield from self._execute(ops, 0, done, corrections))

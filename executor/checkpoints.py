@@ -1,10 +1,11 @@
 """Checkpoints: the whole state of an assembly run as JSON, composed of its components'
 ``state_dict()``s, and the run set up again from one (see :mod:`nanoasm.executor.resume`).
 
-What never changes during a run, the identified environment and the first plan, is not
-repeated in a checkpoint: a run log holds them once (``/environment``, the first
-``/plan``), and :func:`restore` takes them as ``env`` and ``first_plan`` beside the state
-(:func:`nanoasm.executor.resume.resume_point` puts them there).
+What never changes during a run, the identified environment, the first plan and the
+first full scan, is not repeated in a checkpoint: a run log holds them once
+(``/environment``, the first ``/plan``, ``/full_scan``), and :func:`restore` takes them
+as ``env``, ``first_plan`` and ``full_scan`` (a HeightImage in the layout frame, or None)
+beside the state (:func:`nanoasm.executor.resume.resume_point` puts them there).
 """
 
 from __future__ import annotations
@@ -17,7 +18,9 @@ from .belief import Belief
 from .context import RunContext
 from .course import Course
 from .estimators import estimator_from_state
+from .landmarks import Landmarks
 from .ledger import RunLedger
+from .reference_choice import LineTiming
 from .references import References
 
 FORMAT = "nanoasm.checkpoint/1"
@@ -36,6 +39,7 @@ def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str
         "remaining": [o.to_dict() for o in remaining], "done": done, "corrections": dict(corrections),
         "belief": ctx.belief.state_dict(), "estimator": ctx.drift.state_dict(),
         "references": ctx.refs.state_dict(), "course": asm.course.state_dict(),
+        "landmarks": ctx.landmarks.state_dict(), "line_timing": ctx.timing.state_dict(),
         "moving": sorted(ctx.moving), **ctx.ledger.state_dict(),
         "drift": ctx.ledger.drift[-1] if ctx.ledger.drift else None}
 
@@ -60,4 +64,8 @@ def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]
                          Belief.from_state(st["belief"]), References.from_state(st["references"]),
                          RunLedger.from_state(st), moving=set(st["moving"]))
     asm.course = Course.from_state(st["course"])
+    asm.ctx.landmarks = Landmarks.from_state(st.get("landmarks"))
+    if st.get("line_timing"):
+        asm.ctx.timing = LineTiming.from_state(st["line_timing"])
+    asm.ctx.full_scan, asm.ctx.env_objects = st.get("full_scan"), asm.env.objects
     return remaining, int(st["done"]), {k: int(v) for k, v in st["corrections"].items()}

@@ -20,7 +20,9 @@ from nanoasm.bodies import Body
 
 from .belief import Belief
 from .estimators import DriftEstimator
+from .landmarks import Landmarks
 from .ledger import RunLedger
+from .reference_choice import LineTiming
 from .references import References
 from .scan_lines import ScanOptions
 from .strategy import ExecOptions
@@ -32,7 +34,11 @@ class RunContext:
 
     ``moving``: objects the current plan still moves (never drift references).
     ``scan_ref``: time of the running scan pattern's first line (its lines are
-    compensated to that time), None between patterns."""
+    compensated to that time), None between patterns. ``landmarks``: the fixed features
+    and relocalisation windows; ``timing``: what a scan line costs on this instrument;
+    ``here``: the tip's last known XY (scanner frame); ``full_scan``: the first full scan
+    in the layout frame and ``env_objects`` what it showed (neither kept in
+    checkpoints: a run log holds them)."""
 
     config: Any                         # the instrument's InstrumentConfig
     options: ExecOptions
@@ -43,6 +49,11 @@ class RunContext:
     scan_opts: ScanOptions | None = None
     moving: set[str] = field(default_factory=set)
     scan_ref: float | None = None
+    landmarks: Landmarks = field(default_factory=Landmarks)
+    timing: LineTiming = field(default_factory=LineTiming)
+    here: np.ndarray | None = None
+    full_scan: Any = None
+    env_objects: tuple = ()
 
     def __post_init__(self) -> None:
         if self.scan_opts is None:

@@ -317,8 +317,9 @@ class CheckpointDoc:
 class ResultDoc:
     """What the run did: the slots assigned (less objects lost) and not, the objects
     pushed, counts, instrument time by activity (s), compute time by stage (s), failures
-    ``(object, cause)``, the run's start (the layout frame's time) and the layout origin
-    in the scanner frame then."""
+    ``(object, cause)``, the run's start (the layout frame's time), the layout origin
+    in the scanner frame then, and the instrument seconds the drift measurements took by
+    purpose (reference, relocalise, bootstrap; optional: logs before it lack it)."""
 
     assignment: tuple[Assignment, ...]
     unfilled: tuple[Unfilled, ...]
@@ -329,6 +330,7 @@ class ResultDoc:
     failures: tuple[tuple[str, str], ...]
     epoch: float
     origin: tuple[float, float]
+    purposes: dict[str, float] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "assignment", tuple(self.assignment))
@@ -342,7 +344,8 @@ class ResultDoc:
                 "unfilled": [u.to_dict() for u in self.unfilled],
                 "pushed": list(self.pushed), "counts": dict(self.counts), "times": dict(self.times),
                 "wall": dict(self.wall), "failures": [{"object": o, "cause": c} for o, c in self.failures],
-                "epoch": self.epoch, "origin": list(self.origin)}
+                "epoch": self.epoch, "origin": list(self.origin),
+                **({} if self.purposes is None else {"purposes": dict(self.purposes)})}
 
     @classmethod
     def from_dict(cls, d: Any) -> ResultDoc:
@@ -359,7 +362,8 @@ class ResultDoc:
         for ft in f.parse(t.tables, "failures"):
             failures.append(f.parse(lambda ft=ft: (ft.string("object"), ft.string("cause"))))
         return cls(assignment, unfilled, tuple(pushed), f.mapping("counts", int), f.mapping("times", float),
-                   f.mapping("wall", float), tuple(failures), f.number("epoch"), f.numbers("origin", 2))
+                   f.mapping("wall", float), tuple(failures), f.number("epoch"), f.numbers("origin", 2),
+                   f.mapping("purposes", float) if d.get("purposes") is not None else None)
 
 
 #: Topic -> the document type its stored dicts are read back as.

@@ -13,10 +13,16 @@ import numpy as np
 
 from .context import RunContext
 from .engine import Msg
-from .scan_steps import locate
+from .edge_scan import edge_pattern
+from .landmarks import EDGE_SPACING
+from .relocalise import keep_track
+from .scan_steps import locate, run_pattern
 
 #: Objects scanned again to find the drift velocity from the full scan's skew.
 BOOTSTRAP_OBJECTS = 4
+#: Variance (nm²) of a component a bootstrap reference measures: the located centre's
+#: and the full scan's (2 nm each), and what the model leaves (the random walk, creep).
+BOOTSTRAP_VAR = 16.0
 
 
 def emit_drift(ctx: RunContext, t: float):
@@ -36,69 +42,202 @@ def fold(ctx: RunContext, obj_id: str, scanner_at, cov, t: float, *, reference: 
     return folded is not False
 
 
-def take_reference(ctx: RunContext, near, obj_id: str | None = None):
+def take_reference(ctx: RunContext, near, obj_id: str | None = None, *, force: bool = False):
     """Measure drift on the reference the estimator wants before a push of ``obj_id``
-    near ``near`` (an untouched object, the anchor, or none)."""
+    near ``near`` (an untouched object, a fixed feature, the anchor, or none); with
+    ``force``, even if none is due."""
     t = yield Msg("clock")
-    ref = ctx.drift.reference_target(t, near, obj_id, ctx.belief, ctx.refs, ctx.ledger.pushed,
-                                     ctx.moving, ctx.options)
-    if ref is None:
+    here = yield Msg("position")
+    ctx.here = ctx.config.codes_to_nm(np.asarray(here))[:2]
+    choice = ctx.drift.reference_target(ctx, t, near, obj_id, force=force)
+    if choice is None:
         return
+    if choice.kind == "feature":
+        yield from scan_feature(ctx, choice.id)
+    else:
+        yield from scan_object_reference(ctx, choice.id)
+    t_end = yield Msg("clock")
+    ctx.ledger.purposes["reference"] += t_end - t
+
+
+def suspect_drift(ctx: RunContext, label: str, near):
+    """``label`` was not where the estimate put it: perhaps it moved, perhaps the drift
+    jumped. It counts as a rejected reference, and a reference is measured at once: out
+    of place too, the estimate is relocalised. Returns whether it was."""
+    if not ctx.drift.uses_landmarks:
+        return False
+    t = yield Msg("clock")
+    ctx.drift.reject(label, t)
+    yield from take_reference(ctx, near, label, force=True)
+    return (yield from keep_track(ctx))
+
+
+def scan_object_reference(ctx: RunContext, ref: str):
+    """Locate an object as a drift reference and fold it in."""
     found = yield from locate(ctx, ref)
     if found is None:
         if ctx.drift.references_are_objects:
             ctx.belief.lose(ref)
+            ctx.drift.reject(ref, (yield Msg("clock")))
         return
     body, cov, t, _ = found
     if not fold(ctx, ref, body.at, cov, t, reference=True):
-        yield Msg("event", (f"{ref} moved on its own (gated out of the drift estimate)",), {"level": "warn"})
+        yield Msg("event", (f"{ref} moved on its own (gated out of the drift estimate; "
+                            f"{ctx.refs.note(ref)})",), {"level": "warn"})
     yield from emit_drift(ctx, t)
     if ctx.drift.references_are_objects:
         ctx.observe(ref, ctx.to_layout(body, t).at, t, cov)
 
 
+def scan_feature_lines(ctx: RunContext, fid: str, *, agree: bool = True):
+    """Scan the sites of fixed feature ``fid`` where the estimate puts them; returns
+    ``(result, placed sites (scanner point, normal, height), offset used, time)`` or
+    None when the feature was not found (a miss: counted, and told). ``agree``: two
+    sites of one edge must agree (not while the velocity that takes the full scan's
+    rows apart is still unknown: the bootstrap's)."""
+    marks, est = ctx.landmarks, ctx.drift
+    t = yield Msg("clock")
+    off = est.offset(t)
+    reach = marks.reach(est, fid, t)
+    placed = [(p + off, n, h) for p, n, h, _ in marks.sites(est, fid)]
+    res = yield from run_pattern(ctx, edge_pattern(placed, reach, spacing=EDGE_SPACING,
+                                                   site_stds=marks.check_stds(est, fid), agree=agree))
+    if not res.found:
+        retired = marks.missed(fid)
+        yield Msg("event", (f"feature {fid} not found within {reach:.0f} nm ({res.reason})"
+                            + ("; retired" if retired else ""),), {"level": "warn"})
+        return None
+    return res, placed, off, (ctx.scan_ref if ctx.scan_ref is not None else t)
+
+
+def scan_feature(ctx: RunContext, fid: str):
+    """Scan a fixed feature and fold the offset components it measures (each site's
+    crossing, scanner frame, less where the full scan saw it); a feature not found, or
+    found out of place, is a miss and a rejection. Returns whether it was folded in."""
+    marks, est = ctx.landmarks, ctx.drift
+    scanned = yield from scan_feature_lines(ctx, fid)
+    if scanned is None:
+        est.reject(fid, (yield Msg("clock")))
+        return False
+    res, placed, off, t_scan = scanned
+    H = np.array([n for _, n, _ in placed])
+    taus = marks.taus(est, fid)
+    # each crossing (scanner frame) less where the full scan saw it, that row's creep out
+    z = np.array([n @ (p + o * n - est.origin - np.asarray(site.point, float) + est.scan.creep_at(tau))
+                  for (p, n, _), o, site, tau in zip(placed, res.offsets, marks.features[fid].sites, taus)])
+    line_stds = [step.std for step in res.steps]
+    ok = est.measure_feature(fid, z, H, marks.measurement_cov(est, fid, line_stds), t_scan, taus)
+    if ok:
+        marks.found(fid)
+    else:
+        retired = marks.missed(fid)
+        yield Msg("event", (f"feature {fid} out of place by {np.abs(res.offsets).max():.0f} nm "
+                            f"(gated out of the drift estimate)" + ("; retired" if retired else ""),),
+                  {"level": "warn"})
+    ctx.log_drift(t_scan)
+    yield from emit_drift(ctx, t_scan)
+    return ok
+
+
+def _bootstrap_picks(ctx: RunContext) -> list[tuple[str, str, float]]:
+    """What the bootstrap may scan again, in order: ``(kind, id, time seen)``. First
+    :data:`BOOTSTRAP_OBJECTS` spread over the full scan's rows, latest first (their
+    drift since is the smallest, so their lines are short, and every one sharpens the
+    velocity that sizes the next one's lines), then the rest, latest first, for when
+    those do not measure both coordinates. Particles and corners measure both; straight
+    edges follow them."""
+    belief, marks = ctx.belief, ctx.landmarks
+    both = [("object", o.id, belief.seen[o.id].t) for o in belief.objects.values()
+            if o.kind == "particle" and not o.edge]
+    feats = [("feature", fid, float(np.mean(marks.seen[fid]))) for fid in marks.features]
+    both += [c for c in feats if marks.features[c[1]].kind == "corner"]
+    edges = [c for c in feats if c not in both]
+    both.sort(key=lambda c: (c[2], c[1]))
+    if not both:
+        return sorted(edges, key=lambda c: (-c[2], c[1]))
+    k = min(BOOTSTRAP_OBJECTS, len(both))
+    spread = [both[round(j * (len(both) - 1) / max(k - 1, 1))] for j in range(k)]
+    first = sorted(dict.fromkeys(spread), key=lambda c: (-c[2], c[1]))
+    rest = sorted((c for c in both + edges if c not in first), key=lambda c: (-c[2], c[1]))
+    return first + rest
+
+
 def bootstrap(ctx: RunContext):
-    """The drift velocity from the full scan's own distortion (estimators that want it).
+    """The drift the full scan's rows carried, from the full scan's own distortion
+    (estimators that want it).
 
     A full scan takes minutes: an object on row ``i`` was imaged at ``τ_i`` and the
-    identified position carries the drift ``o(τ_i)``. Scanning a few objects again
-    from bottom to top rows gives ``z_i = o(t_i) − o(τ_i) = v (t_i − τ_i)``: the velocity
-    by least squares, which starts the drift filter (and corrects every other object
-    of the first scan for its row's drift).
+    identified position carries the drift ``D(τ_i)``. Scanning a few objects (or fixed
+    features) again gives ``z_i = D(t_i) − D(τ_i)`` (a straight edge: its component
+    along the edge's normal), linear in the drift's velocity and its steady change
+    (:class:`~nanoasm.executor.scan_drift.ScanDrift`): measured by Bayesian least
+    squares, they start the drift filter and take every other object of the first scan
+    out of its row's drift. Each reference sharpens the model that sizes the next one's
+    lines; the variance of a measured component is taken as :data:`BOOTSTRAP_VAR`.
     """
-    drift, belief = ctx.drift, ctx.belief
+    drift = ctx.drift
     if not drift.bootstraps:
         return
-    cands = sorted((o for o in belief.objects.values() if o.kind == "particle" and not o.edge),
-                   key=lambda o: belief.seen[o.id].t)
-    if len(cands) < 2:
-        return
-    k = min(BOOTSTRAP_OBJECTS, len(cands))
-    picks = [cands[round(j * (len(cands) - 1) / (k - 1))] for j in range(k)]
-    # latest rows first: their drift since is the smallest, so their lines are short,
-    # and every one sharpens the velocity that sizes the next one's lines
-    picks.sort(key=lambda o: -belief.seen[o.id].t)
-    rows = []
-    for o in picks:
-        found = yield from locate(ctx, o.id)
-        if found is None:
+    drift.full_scan_done()
+    picks = _bootstrap_picks(ctx)
+    t_start = yield Msg("clock")
+    seen_objects, used, t_last = [], 0, t_start
+    for kind, rid, seen_t in picks:
+        if used >= (BOOTSTRAP_OBJECTS if drift.velocity_known else 3 * BOOTSTRAP_OBJECTS):
+            break
+        scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t)
+        if scanned is None:
             continue
-        body, cov, t, _ = found
-        # o(t) - o(τ) less the creep the moves made so far are modelled to cause
-        z = np.asarray(body.at) - drift.origin - np.asarray(o.at) - drift.creep_offset(t - drift.epoch)
-        rows.append((o.id, body, cov, t, z, t - belief.seen[o.id].t))
-        dts = np.array([r[5] for r in rows])
-        zs = np.array([r[4] for r in rows])
-        v = (zs * dts[:, None]).sum(axis=0) / float((dts ** 2).sum())
-        resid = zs - dts[:, None] * v[None, :]
-        var = (float(np.mean(resid ** 2)) if len(rows) > 2 else 25.0) + 4.0
-        drift.restart(v, var / float((dts ** 2).sum()))
-    if not rows:
-        return
-    for oid, body, cov, t, _, _ in rows:
+        rows, t, seen = scanned
+        for n, z, tau1, tau0 in rows:
+            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR)
+        if seen is not None:
+            seen_objects.append(seen)
+        used += 1
+        t_last = t
+    t_end = yield Msg("clock")
+    ctx.ledger.purposes["bootstrap"] += t_end - t_start
+    for oid, body, cov, t in seen_objects:       # by the scan's drift model, then the filter starts
         ctx.observe(oid, ctx.to_layout(body, t).at, t, cov)
+    drift.restart(t_last)
+    if not drift.velocity_known:
+        yield Msg("event", (f"the drift velocity is not known in every direction: {used} reference(s) of the "
+                            f"full scan did not measure it (the filter starts from its prior)",), {"level": "warn"})
+        return
     v = drift.velocity()
     yield Msg("event", (f"drift from the full scan's skew: {v[0]:+.3f}, {v[1]:+.3f} nm/s "
-                        f"(+/- {drift.velocity_std():.3f}) from {len(rows)} objects",))
-    ctx.log_drift(rows[-1][3])
-    yield from emit_drift(ctx, rows[-1][3])
+                        f"(+/- {drift.velocity_std():.3f}) from {used} references",))
+    ctx.log_drift(t_last)
+    yield from emit_drift(ctx, t_last)
+
+
+def _bootstrap_rows(ctx: RunContext, kind: str, rid: str, seen_t: float):
+    """Scan one bootstrap reference again: ``(rows, time, seen)`` with rows of ``(n, z,
+    τ now, τ then)`` (``z``: the component along ``n`` of the drift between, creep taken
+    out), ``seen`` an object's sighting to record once the drift is known; None when it
+    was not found, or is not yet known well enough along its edge to be scanned."""
+    drift = ctx.drift
+    ep = drift.epoch
+    if kind == "object":
+        found = yield from locate(ctx, rid)
+        if found is None:
+            return None
+        body, cov, t, _ = found
+        # D(t) - D(τ) less the creep modelled now and then
+        creep = drift.creep_offset(t - ep) - drift.scan.creep_at(seen_t - ep)
+        z = np.asarray(body.at) - drift.origin - np.asarray(ctx.belief[rid].at) - creep
+        rows = [(np.array(e), float(z @ e), t - ep, seen_t - ep) for e in ((1.0, 0.0), (0.0, 1.0))]
+        return rows, t, (rid, body, cov, t)
+    t_now = yield Msg("clock")
+    if not ctx.landmarks.within_room(drift, rid, t_now):
+        return None
+    scanned = yield from scan_feature_lines(ctx, rid, agree=False)
+    if scanned is None:
+        return None
+    res, placed, _, t = scanned
+    feat = ctx.landmarks.features[rid]
+    now = drift.creep_offset(t - ep)
+    rows = [(n, float(n @ (p + o * n - drift.origin - np.asarray(site.point, float) - now
+                           + drift.scan.creep_at(ts - ep))), t - ep, ts - ep)
+            for (p, n, _), o, site, ts in zip(placed, res.offsets, feat.sites, ctx.landmarks.seen[rid])]
+    return rows, t, None

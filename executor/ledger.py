@@ -12,6 +12,9 @@ from .report import Counts
 ACTIVITIES = ("full_scan", "local_scan", "push", "travel")
 #: Stages of this program's own compute, wall-clock s.
 STAGES = ("identify", "plan", "execute")
+#: What the drift measurements' instrument time went on (within the activities), s:
+#: reference scans before pushes, relocalisations, the bootstrap after the full scan.
+PURPOSES = ("reference", "relocalise", "bootstrap")
 
 
 @dataclass
@@ -21,12 +24,15 @@ class RunLedger:
     ``troubles`` counts, per object, the pushes that failed or went astray; an object
     reaching ``max_failures`` of them is ``given_up`` (left where it is). ``drift`` logs
     the scanner offset of the layout origin ``(t, x, y)`` after each estimate update.
+    ``purposes``: the instrument seconds spent measuring drift, by :data:`PURPOSES`
+    (counted within ``times`` too).
     """
 
     counts: dict[str, int] = field(default_factory=lambda: {
         "pushes": 0, "local_scans": 0, "replans": 0, "failed_pushes": 0})
     times: dict[str, float] = field(default_factory=lambda: dict.fromkeys(ACTIVITIES, 0.0))
     wall: dict[str, float] = field(default_factory=lambda: dict.fromkeys(STAGES, 0.0))
+    purposes: dict[str, float] = field(default_factory=lambda: dict.fromkeys(PURPOSES, 0.0))
     failures: list[tuple[str, str]] = field(default_factory=list)
     troubles: dict[str, int] = field(default_factory=dict)
     given_up: set[str] = field(default_factory=set)
@@ -55,6 +61,7 @@ class RunLedger:
 
     def state_dict(self) -> dict:
         return {"counts": dict(self.counts), "times": dict(self.times), "wall": dict(self.wall),
+                "purposes": dict(self.purposes),
                 "failures": [list(f) for f in self.failures], "troubles": dict(self.troubles),
                 "given_up": sorted(self.given_up), "pushed": list(self.pushed),
                 "drift_log": [list(d) for d in self.drift]}
@@ -65,6 +72,7 @@ class RunLedger:
         out.counts.update({k: int(v) for k, v in state["counts"].items()})
         out.times.update({k: float(v) for k, v in state["times"].items()})
         out.wall.update({k: float(v) for k, v in state["wall"].items()})
+        out.purposes.update({k: float(v) for k, v in state.get("purposes", {}).items()})
         out.failures = [tuple(f) for f in state["failures"]]
         out.troubles = {k: int(v) for k, v in state["troubles"].items()}
         out.given_up = set(state["given_up"])

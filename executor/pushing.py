@@ -12,11 +12,13 @@ from nanoasm.world.cantilever import Cantilever
 
 from .context import RunContext
 from .course import Course
-from .drift_steps import emit_drift, fold, take_reference
+from .drift_steps import emit_drift, fold, suspect_drift, take_reference
 from .engine import Msg
 from .monitor import Verdict
 from .motion_steps import stream_push
 from .reaim import particle_push, rod_push
+from .references import swept_area
+from .relocalise import keep_track
 from .scan_steps import locate, scan_after
 
 #: A push planned longer than this (nm) that moved its object less than
@@ -30,23 +32,56 @@ def _lost(ctx: RunContext, obj_id: str) -> None:
     ctx.ledger.fail(obj_id, "lost")
 
 
+def _locate_start(ctx: RunContext, obj_id: str):
+    """Locate the object about to be pushed and fold it into the drift estimate while it
+    is a reference. Not where the estimate puts it, the drift is checked first (it may
+    have jumped: :func:`~.drift_steps.suspect_drift`), then it is searched for; a fold
+    that sets off a relocalisation has it located again where the new estimate puts it.
+    Returns (scanner pose, cov, t) or None (not found)."""
+    found = yield from locate(ctx, obj_id, widen=False)
+    relocalised = False
+    if found is None:
+        relocalised = yield from suspect_drift(ctx, obj_id, ctx.belief[obj_id].at)
+        found = yield from locate(ctx, obj_id)
+    if found is None:
+        return None
+    measured, cov, t, _ = found
+    if not fold(ctx, obj_id, measured.at, cov, t):
+        yield Msg("event", (f"{obj_id} moved on its own ({ctx.refs.note(obj_id)})",), {"level": "warn"})
+    yield from emit_drift(ctx, t)
+    if not relocalised and (yield from keep_track(ctx)):
+        found = yield from locate(ctx, obj_id)
+    return None if found is None else found[:3]
+
+
+def _quarantine(ctx: RunContext, op: Operation, poses, plan_options: PlanOptions, t: float) -> None:
+    """The push of ``op`` may have shoved what lies near its sweep (``poses``: where its
+    object started and went, and where the plan expected it): quarantine those."""
+    expect = op.expect
+    o = ctx.belief[op.object]
+    end = Body(o.id, o.kind, expect.at, o.diameter, expect.angle if o.elongated else None,
+               o.length if o.elongated else None)
+    area = swept_area(op.object, t, op.tip_path, [*poses, end], tip_radius=plan_options.tip_radius)
+    ctx.refs.pushed_near(area, ctx.belief)
+
+
 def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan_options: PlanOptions):
     """One push with its scans; returns "ok", "failed" or "lost"."""
     obj_id = op.object
     scans = ctx.options.strategy.scans
     start = ctx.belief[obj_id]
     if scans:
+        yield from keep_track(ctx)
         yield from take_reference(ctx, start.at, obj_id)
-        found = yield from locate(ctx, obj_id)
+        yield from keep_track(ctx)
+        found = yield from _locate_start(ctx, obj_id)
         if found is None:
             _lost(ctx, obj_id)
             yield Msg("event", (f"{obj_id} lost: not found within {ctx.options.lost_radius:.0f} nm",),
                       {"level": "error"})
+            _quarantine(ctx, op, [start], plan_options, (yield Msg("clock")))
             return "lost"
-        measured, cov, t, _ = found
-        if not fold(ctx, obj_id, measured.at, cov, t):
-            yield Msg("event", (f"{obj_id} moved on its own",), {"level": "warn"})
-        yield from emit_drift(ctx, t)
+        measured, cov, t = found
         measured = ctx.to_layout(measured, t)       # with the drift as now estimated
         ctx.observe(obj_id, measured.at, t, cov, angle=measured.angle)
         start = ctx.belief[obj_id]
@@ -71,9 +106,11 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
     if scans:
         after = yield from scan_after(ctx, op, start)
         if after is None:
+            yield from suspect_drift(ctx, obj_id, op.expect.at)
             located = yield from locate(ctx, obj_id)
             if located is None:
                 _lost(ctx, obj_id)
+                _quarantine(ctx, op, [start], plan_options, (yield Msg("clock")))
                 return "lost"
             scanner, cov, t = located[:3]
             after = (ctx.to_layout(scanner, t), cov, t)
@@ -89,6 +126,7 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
         if verdict.status == "slipped":
             course.slipped(obj_id)
     t_end = yield Msg("clock")
+    _quarantine(ctx, op, [start, ctx.belief[obj_id]], plan_options, t_end)
     yield Msg("emit", ("push", {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,
                                 "offset": [float(v) for v in ctx.offset(t_end)],
                                 "before": [float(v) for v in start.at],

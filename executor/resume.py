@@ -22,6 +22,7 @@ import numpy as np
 from nanoasm.errors import InputError
 
 from .documents import CHANNELS, CHECKPOINT, ENVIRONMENT, PLAN, RESULT
+from .scan_attachment import FULL_SCAN_ATTACHMENT, full_scan_image
 
 
 @dataclass(frozen=True)
@@ -82,7 +83,13 @@ def resume_point(path: str | os.PathLike, kind: str, at: float | None = None) ->
     if not env or not plan:
         raise InputError(str(path), CHANNELS[ENVIRONMENT if not env else PLAN],
                          "the log lacks what the run identified or planned first")
-    state = {**ckpt.to_dict(), "env": env[0][1].to_dict(), "first_plan": plan[0][1].to_dict()}
+    scan = log.attachments.get(FULL_SCAN_ATTACHMENT)
+    try:
+        image = full_scan_image(scan) if scan is not None else None
+    except ValueError as err:
+        raise InputError(str(path), FULL_SCAN_ATTACHMENT, str(err)) from None
+    state = {**ckpt.to_dict(), "env": env[0][1].to_dict(), "first_plan": plan[0][1].to_dict(),
+             "full_scan": image}
     return ResumePoint(str(path), state, layout, dict(log.metadata.get("nanoasm", {})), scene)
 
 

@@ -30,6 +30,7 @@ import numpy as np
 
 from .documents import (CHANNELS, CHECKPOINT, DAC, ENVIRONMENT, EVENT, FAILED_VERDICTS, FULL_SCAN, PLAN, PUSH,
                         RESULT, SCAN_LINE, STOP, Document, as_dict)
+from .scan_attachment import FULL_SCAN_ATTACHMENT, full_scan_bytes
 from .foxglove_scenes import (COLOURS, bodies_scene, grid, layout_scene, log_line, nanoseconds, paths_scene,
                               timestamp)
 
@@ -276,6 +277,7 @@ class RunLog:
 
     def _on_full_scan(self, doc: dict, t: float | None) -> None:
         self._log("/scan", grid(doc, self._stamp(t)), t)
+        self.attach(FULL_SCAN_ATTACHMENT, full_scan_bytes(doc), media_type="application/x-npz")
 
     def _on_environment(self, doc: dict, t: float | None) -> None:
         self._log("/objects", bodies_scene(doc.get("objects", ()), "obj", COLOURS["object"], self._stamp(t)), t)

@@ -75,6 +75,7 @@ def scan_line(ctx: RunContext, a: np.ndarray, b: np.ndarray, n: int):
     t0 = yield Msg("clock")
     profile = np.asarray((yield Msg("scan_line", (tuple(ends[0]), tuple(ends[1]), count))), float)
     t = yield Msg("clock")
+    ctx.timing.observe(count, t - t0)
     ctx.drift.moved_to(ends[0], t0)
     ctx.drift.moved_to(ends[1], t)
     if count < n:
@@ -100,11 +101,13 @@ def _pose(o, centre, angle) -> Body:
                 angle if o.elongated else None, o.length if o.elongated else None)
 
 
-def locate(ctx: RunContext, obj_id: str):
-    """Local scan of an object where it is believed to be; widening search if missed.
+def locate(ctx: RunContext, obj_id: str, *, widen: bool = True):
+    """Local scan of an object where it is believed to be; widening search if missed
+    (and ``widen``).
 
     Returns (measured pose in the *scanner* frame, covariance, time, scan result) or
-    None (lost). Convert with ``ctx.to_layout`` after any drift update.
+    None (lost, or not where expected). Convert with ``ctx.to_layout`` after any drift
+    update.
     """
     o = ctx.belief[obj_id]
     t = yield Msg("clock")
@@ -116,6 +119,9 @@ def locate(ctx: RunContext, obj_id: str):
     else:
         pattern = particle_before(at, o.diameter, r_max, options=ctx.scan_opts)
     res = yield from run_pattern(ctx, pattern)
+    if not res.found and not widen:
+        yield Msg("event", (f"{obj_id} not found within {r_max:.0f} nm",), {"level": "warn"})
+        return None
     if not res.found:
         yield Msg("event", (f"{obj_id} not found within {r_max:.0f} nm; widening search",), {"level": "warn"})
         res = yield from run_pattern(ctx, find_lost_particle(at, o.diameter, ctx.options.lost_radius,

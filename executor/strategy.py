@@ -1,14 +1,15 @@
 """Execution strategies and the knobs of a run.
 
-=============  ============  ============  ==============  ===========  =================
+=============  ============  ============  ==============  ===========  ======================
 strategy       local scans   drift filter  re-aim pushes   replanning   reference
-=============  ============  ============  ==============  ===========  =================
+=============  ============  ============  ==============  ===========  ======================
 open-loop      no            no            no              no           none
 local-scan     yes (ch. 5)   no            yes             no           none
-kalman         yes           yes           yes             no           untouched objects
-full           yes           yes           yes             yes          untouched objects
-anchor         yes           no            yes             no           one fixed feature
-=============  ============  ============  ==============  ===========  =================
+kalman         yes           yes           yes             no           untouched objects,
+                                                                        fixed features
+full           yes           yes           yes             yes          as kalman
+anchor         yes           no            yes             no           one untouched particle
+=============  ============  ============  ==============  ===========  ======================
 """
 
 from __future__ import annotations
@@ -71,6 +72,20 @@ class ExecOptions:
     reference_every : float
         A drift reference is measured before a push when the last one is older than
         this, s (kalman, full, anchor).
+    reference_sigma : float
+        ...or when the drift estimate's σ (worst direction) is above this, nm (kalman, full).
+    relocalise_sigma : float
+        The drift estimate is relocalised (a window of the full scan scanned again and
+        registered) when its σ passes this, nm (kalman, full).
+    relocalise_rejections : int
+        ...or when this many drift references in a row are not where it puts them.
+    relocalise_pause : float
+        ...or when a resumed run stood still this long, s.
+    relocalise_window : float
+        Side of the window scanned to relocalise, nm.
+    creep_amplitude_std : float
+        Standard deviation of the creep amplitude the drift filter assumes, per decade
+        (the nominal amplitude is 0.01; a real scanner's is known to about ±30 %).
     drift_q : float
         Process noise of the drift filter: random walk of the drift velocity, nm²/s³.
     drift_q_offset : float
@@ -111,6 +126,17 @@ class ExecOptions:
                                        "(None: min(1, R / 10))", optional=True, positive=True)
     reference_every: float = param(120.0, "s", "largest age of the last drift reference before a push",
                                    positive=True)
+    reference_sigma: float = param(6.0, "nm", "drift σ above which a reference is measured before a push",
+                                   positive=True)
+    relocalise_sigma: float = param(40.0, "nm", "drift σ above which the estimate is relocalised",
+                                    positive=True)
+    relocalise_rejections: int = param(2, "-", "references rejected in a row that relocalise", lo=1)
+    relocalise_pause: float = param(300.0, "s", "stand-still of a resumed run that relocalises",
+                                    positive=True)
+    relocalise_window: float = param(2000.0, "nm", "side of the window scanned to relocalise",
+                                     positive=True)
+    creep_amplitude_std: float = param(0.002, "1/decade", "standard deviation of the creep amplitude "
+                                       "the drift filter assumes", nonnegative=True)
     drift_q: float = param(1e-6, "nm²/s³", "random walk of the drift velocity", nonnegative=True)
     drift_q_offset: float = param(0.1, "nm²/s", "white noise on the drift offset", nonnegative=True)
     max_corrections: int = param(2, "-", "extra pushes to bring an object into its slot", nonnegative=True)

@@ -25,6 +25,7 @@ from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout, load_layout
 from nanoasm.errors import InputError
 from nanoasm.executor.assembly import Assembly
+from nanoasm.executor.documents import as_dict
 from nanoasm.executor.engine import RunEngine, Subscriber
 from nanoasm.executor.report import Report
 from nanoasm.executor.resume import resume_point, resumed_log_path
@@ -40,13 +41,66 @@ from nanoasm.world.sim import SimulatedAFM
 
 
 @dataclass(frozen=True)
+class DriftPoint:
+    """One drift estimate beside the truth: time (s), the estimated and the true drift
+    since the run's start (nm), and the estimate's covariance (nm², None if it has none)."""
+
+    t: float
+    estimate: tuple[float, float]
+    truth: tuple[float, float]
+    cov: tuple[tuple[float, float], tuple[float, float]] | None
+
+    @property
+    def error(self) -> float:
+        """Distance between the estimate and the truth, nm."""
+        return math.dist(self.estimate, self.truth)
+
+    @property
+    def sigma(self) -> float | None:
+        """The estimate's σ along its worst direction, nm."""
+        return None if self.cov is None else math.sqrt(max(float(np.linalg.eigvalsh(np.asarray(self.cov))[-1]), 0.0))
+
+    @property
+    def mahalanobis2(self) -> float | None:
+        """Squared Mahalanobis distance of the error under the estimate's covariance."""
+        if self.cov is None:
+            return None
+        e = np.subtract(self.estimate, self.truth)
+        return float(e @ np.linalg.solve(np.asarray(self.cov) + 1e-9 * np.eye(2), e))
+
+
+class _DriftLog:
+    """A subscriber keeping the drift estimates sent during a run."""
+
+    def __init__(self):
+        self.docs: list[dict] = []
+
+    def __call__(self, topic: str, doc) -> None:
+        if topic == "drift":
+            self.docs.append(as_dict(doc))
+
+    def against(self, sim: SimulatedAFM, epoch: float) -> tuple[DriftPoint, ...]:
+        """The estimates beside the simulated truth (the harness's to read, never the executor's)."""
+        o0 = np.asarray(sim.true_offset(epoch))
+        out = []
+        for d in self.docs:
+            truth = np.asarray(sim.true_offset(float(d["t"]))) - o0
+            cov = None if d.get("cov") is None else tuple(tuple(float(v) for v in r) for r in d["cov"])
+            out.append(DriftPoint(float(d["t"]), tuple(float(v) for v in d["offset"]),
+                                  (float(truth[0]), float(truth[1])), cov))
+        return tuple(out)
+
+
+@dataclass(frozen=True)
 class Outcome:
-    """A dry-run's report plus the figures derived from it."""
+    """A dry-run's report plus the figures derived from it, and its drift estimates
+    beside the simulated truth."""
 
     report: Report
     summary: RunSummary
     filled: tuple[str, ...]
     errors: dict[str, float]          # centre error of every assigned slot, nm
+    drift: tuple[DriftPoint, ...] = ()
 
     @property
     def rms_error(self) -> float:
@@ -150,7 +204,8 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
         start_clock = sim.clock()
         initial_sample = sim.truth()
     assembly = Assembly(layout, options, plan_options)
-    subscribers = list(subscribers or ())
+    drift_log = _DriftLog()
+    subscribers = [*(subscribers or ()), drift_log]
     if keep_sim is not None:
         subscribers.append(SimKeeper(keep_sim, sim, {"start_clock": start_clock, "initial": initial_sample}))
     engine = RunEngine(sim, subscribers)
@@ -170,7 +225,7 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     report = report_of(summary, layout, total, time.perf_counter() - t_wall, layout_name=layout_name,
                        scene_name=scene_name, seed=seed, objects=(initial, final), ids=ids)
     filled, errors = filled_slots(layout, report.assignment, {b.id: b for b in final})
-    return Outcome(report, summary, filled, errors)
+    return Outcome(report, summary, filled, errors, drift_log.against(sim, summary.epoch))
 
 
 

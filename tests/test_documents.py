@@ -160,3 +160,14 @@ def test_environment_and_plan_documents_and_topics():
     with pytest.raises(DocumentError, match="unknown topic"):
         document_from_dict("pushes", {})
     assert set(CHANNELS) <= set(TOPICS) and CHANNELS[PUSH] == "/push" and len(set(TOPICS)) == len(TOPICS)
+
+
+def test_a_result_tells_what_the_drift_measurements_took_and_older_results_still_read():
+    doc = ResultDoc((), (), (), {}, {}, {}, (), 0.0, (0.0, 0.0),
+                    purposes={"reference": 12.5, "relocalise": 0.0, "bootstrap": 4.0})
+    back = ResultDoc.from_dict(json.loads(json.dumps(doc.to_dict())))
+    assert back == doc and back.purposes["reference"] == 12.5
+    older = {k: v for k, v in doc.to_dict().items() if k != "purposes"}
+    assert ResultDoc.from_dict(older).purposes is None
+    with pytest.raises(DocumentError, match="purposes.reference"):
+        ResultDoc.from_dict({**doc.to_dict(), "purposes": {"reference": "soon"}})

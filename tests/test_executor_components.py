@@ -70,7 +70,7 @@ def test_the_anchor_gives_the_offset_where_it_is_found_less_where_it_was():
     est = Anchor((10.0, 20.0), 0.0)
     est.after_plan(Plan("x", (), (op,), ()), belief, (4000.0, 4000.0))
     assert est.anchor[0] == "near"                               # unmoved, nearest the centre
-    assert est.reference_target(0.0, (0, 0), "mover", belief, References(), [], set(), OPTS) == "near"
+    assert est.reference_target(None, 0.0, (0, 0), "mover").id == "near"
     assert est.measure("near", (0.0, 0.0), np.eye(2), 9.0, References(), [], set()) is None   # only its own scan
     assert est.measure_reference("near", (2100.0 + 10 + 7, 2000.0 + 20 - 3), np.eye(2), 9.0, References(), [], set())
     assert est.offset(9.0) == pytest.approx([10.0 + 7, 20.0 - 3])
@@ -84,7 +84,10 @@ def _kalman_setup():
     objs = [_particle("r1", 1000, 1000), _particle("r2", 3000, 3000), _particle("p", 2000, 2000)]
     belief = Belief(_env(*objs), 0.0)
     refs = References.of_scan(objs, belief.seen)
-    return Kalman((0.0, 0.0), 0.0, OPTS), belief, refs
+    est = Kalman((0.0, 0.0), 0.0, OPTS)
+    est.full_scan_done()
+    est.restart(0.0)                  # no bootstrap: the filter starts from the drift model's prior
+    return est, belief, refs
 
 
 def test_kalman_folds_a_reference_in_and_gates_out_one_that_moved_on_its_own():
@@ -107,11 +110,15 @@ def test_kalman_records_only_moves_long_enough_to_creep_and_keeps_the_rest_for_t
     assert len(est.move_log) == 1 and est.move_log[0][1] == pytest.approx([4 * small, 0.0])
 
 
-def test_kalman_picks_the_nearest_reference_outside_the_reach_of_the_push():
+def test_kalman_picks_the_reference_of_most_information_per_second_never_a_quarantined_one():
     est, belief, refs = _kalman_setup()
-    ref = est.reference_target(0.0, (1100.0, 1000.0), "p", belief, refs, [], {"p"}, OPTS)
-    assert ref == "r2"                                            # r1 is within the push's reach
-    assert est.reference_target(0.0, (2500.0, 2500.0), "p", belief, refs, [], {"p"}, OPTS) == "r2"
+    ctx = RunContext(InstrumentConfig(), OPTS, est, belief, refs, moving={"p"})
+    ctx.here = np.array([1000.0, 1000.0])
+    assert est.reference_target(ctx, 0.0, (1100.0, 1000.0), "p").id == "r1"   # the nearer: less travel
+    refs.quarantine["r1"] = "p"                                    # a push came near it
+    assert est.reference_target(ctx, 0.0, (1100.0, 1000.0), "p").id == "r2"
+    refs.quarantine["r2"] = "p"
+    assert est.reference_target(ctx, 0.0, (1100.0, 1000.0), "p") is None     # "p" moves: none left
 
 
 def test_kalman_goes_on_from_its_state_as_it_was():

@@ -92,7 +92,7 @@ def test_truth_is_the_harness_own_and_matches_the_report(logged):
 def test_attachments_and_metadata(logged):
     _, out, _, log = logged
     scene, layout = particle_bowtie()
-    assert set(log.attachments) == {"layout.json", "scene.json", "plan.json", "instrument.json"}
+    assert set(log.attachments) == {"layout.json", "scene.json", "plan.json", "instrument.json", "full_scan.npz"}
     assert layout_from_dict(log.attachment_json("layout.json")) == layout
     assert log.attachment_json("scene.json") == json.loads(scene.dumps_json())
     assert log.attachment_json("plan.json") == log.topic("/plan")[0].data
@@ -271,3 +271,17 @@ def test_a_document_and_its_dict_are_logged_alike(logged, tmp_path):
         wire = [[m.data.SerializeToString() for m in log.topic(topic)] for log in (typed, plain)]
         assert wire[0] == wire[1] and wire[0], topic
     assert document_from_dict(PUSH, sent).to_dict() == sent
+
+
+def test_the_full_scan_attachment_keeps_the_scan_exactly_and_refuses_other_bytes(logged):
+    from nanoasm.executor.scan_attachment import full_scan_bytes, full_scan_image
+
+    _, _, _, log = logged
+    image = full_scan_image(log.attachments["full_scan.npz"])
+    assert image.height.ndim == 2 and image.pixel_size > 0 and np.isfinite(image.height).all()
+    doc = {"height": np.arange(12.0).reshape(3, 4) / 3, "pixel_size": 2.5, "origin": (-1.0, 0.5)}
+    back = full_scan_image(full_scan_bytes(doc))
+    assert np.array_equal(back.height, doc["height"]) and back.pixel_size == 2.5 and back.origin == (-1.0, 0.5)
+    for bad in (b"", b"PK\x03\x04 not a zip", full_scan_bytes({**doc, "height": np.ones(3)})):
+        with pytest.raises(ValueError, match="not a full-scan attachment"):
+            full_scan_image(bad)

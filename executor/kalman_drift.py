@@ -1,0 +1,395 @@
+"""The drift estimator of the kalman and full strategies: the drift filter of
+:mod:`nanoasm.drift`, its references, the creep of every recorded scanner move, and when
+the estimate can no longer be trusted (relocalisation).
+
+References are of two kinds, chosen by information per second
+(:mod:`.reference_choice`): objects never pushed, measured against where the first
+full scan saw them, and fixed features of the obstacles (:mod:`.landmarks`), which
+never move and so never run out. An object a push came near is quarantined
+(:mod:`.references`) until a scan finds it where it should be.
+
+The estimate is relocalised (:mod:`.relocalise`) when its uncertainty passes
+``relocalise_sigma``, when references are rejected ``relocalise_rejections`` times in a
+row (the drift jumped, or everything near moved), or after a resume that stood still
+for ``relocalise_pause``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from nanoasm.drift import DriftFilter, DriftFilterParams, gate_threshold
+from nanoasm.drift.creep import CreepingOffset, CreepModelParams
+
+from .reference_choice import Candidate, best, object_candidates
+from .references import References
+from .scan_drift import ScanDrift
+from .strategy import ExecOptions
+
+#: Variance (nm² per axis) of an object's position in the first full scan, its row's
+#: drift aside (identification measured 0.28 nm on centres; 2 nm covers pixel effects).
+FULL_SCAN_VAR = 4.0
+#: Static parameters of the filter's state after the bootstrap: the full scan's drift
+#: model θ (velocity and its steady change, :class:`~nanoasm.executor.scan_drift.ScanDrift`).
+SCAN_STATICS = 4
+
+
+def filter_params(options: ExecOptions) -> DriftFilterParams:
+    """The drift filter's parameters for a run's options: the nominal creep, with the
+    uncertainty of its amplitude (a real scanner's creep is known to about ±30 %)."""
+    creep = CreepModelParams(amplitude_std=options.creep_amplitude_std)
+    return DriftFilterParams(q=options.drift_q, q_offset=options.drift_q_offset, offset_std=1.0,
+                             creep=creep)
+
+
+class Kalman:
+    """Kalman and full: the drift filter, its references and the creep of the moves."""
+
+    references_are_objects = True
+    emits = True
+    bootstraps = True
+    uses_landmarks = True
+
+    def __init__(self, origin, epoch: float, options: ExecOptions):
+        self.origin = np.asarray(origin, float)
+        self.epoch = float(epoch)
+        self.params = filter_params(options)
+        self.filter = DriftFilter(self.params, epoch=self.epoch)
+        self.move_log: list[tuple[float, np.ndarray]] = []   # replayed when restarted
+        self.creep_anchor: np.ndarray | None = None   # where the last recorded move ended, nm
+        self.rejections = 0                           # references rejected in a row
+        self.rejected: list[str] = []                 # ... which (re-admitted if the drift jumped)
+        self.streak_start: float | None = None        # ... since when
+        self.pause = 0.0                              # the stand-still of the last resume, s
+        self.failed_at: float | None = None           # when a relocalisation last failed
+        self.relocalised_at: float | None = None      # ... and last succeeded
+        # the drift the full scan's rows carried (the filter's own velocity follows the
+        # drift as it changes later)
+        self.scan = ScanDrift(self.epoch, self.params.velocity_std, self.params.creep.amplitude,
+                              self.params.creep.tau)
+
+    @property
+    def velocity_known(self) -> bool:
+        """Whether the bootstrap has measured the velocity in every direction."""
+        return self.scan.known
+
+    def restart(self, t: float) -> None:
+        """Start the filter afresh at the end of the bootstrap (instrument time ``t``) from
+        what the full scan's skew gave: the offset then (the model's drift at ``t``), the
+        velocity then, and the model's parameters ``θ`` themselves, kept in the filter's
+        state as static parameters, so that every reference measured against the full
+        scan refines them and their errors are never taken for independent noise; the
+        moves recorded so far are its creep input, whose amplitude it learns too (a real
+        scanner's is known to some ±30 %)."""
+        tau = t - self.epoch
+        k = SCAN_STATICS
+        M = np.vstack([self.scan.jacobian(tau), np.hstack([np.eye(2), np.eye(2) * tau]), np.eye(k)])
+        x0 = np.concatenate([np.zeros(4), np.zeros(k)]) + M @ self.scan.theta
+        P0 = M @ self.scan.cov @ M.T
+        P0[:2, :2] += np.eye(2) * 4.0
+        P0[2:4, 2:4] += np.eye(2) * 1e-6
+        self.filter = DriftFilter(self.params, epoch=self.epoch, x0=x0, P0=0.5 * (P0 + P0.T), statics=k,
+                                  start=tau, learn_creep=True)
+        for t_move, step in self.move_log:
+            self.filter.creep.record(t_move - self.epoch, step)
+
+    def scan_theta(self) -> tuple[np.ndarray, np.ndarray]:
+        """The full scan's drift model ``θ`` and its covariance: the filter's once it
+        holds them (after the bootstrap), the bootstrap's before."""
+        if self.filter.statics:
+            return self.filter.x[4:4 + SCAN_STATICS], self.filter.P[4:4 + SCAN_STATICS, 4:4 + SCAN_STATICS]
+        return self.scan.theta, self.scan.cov
+
+    def static_rows(self, normals, taus) -> np.ndarray:
+        """How components measured against the full scan depend on ``θ``: ``-n_k J(τ_k)``."""
+        return np.array([-np.asarray(n, float) @ self.scan.jacobian(tau) for n, tau in zip(normals, taus)])
+
+    # -- the estimate ---------------------------------------------------------------------
+    def _bootstrapping(self) -> bool:
+        """Between the full scan's end and the filter's start, the drift model of the
+        scan is the estimate."""
+        return self.scan.ended and not self.filter.statics
+
+    def offset(self, t: float) -> np.ndarray:
+        if self._bootstrapping():
+            tau = t - self.epoch
+            return self.origin + self.scan.jacobian(tau) @ self.scan.theta + self.filter.creep.offset(tau)
+        return self.origin + np.asarray(self.filter.offset(t).offset, float)
+
+    def offset_cov(self, t: float) -> np.ndarray:
+        """Covariance (nm²) of :meth:`offset` at ``t`` (creep's uncertainty included)."""
+        if self._bootstrapping():
+            return self.scan.offset_cov(t - self.epoch) + self.filter.creep.cov(t - self.epoch)
+        return np.asarray(self.filter.offset(self.clamp(t)).cov, float)
+
+    def sigma(self, t: float) -> float:
+        """Standard deviation (nm) of the offset along its worst direction at ``t``."""
+        return math.sqrt(max(float(np.linalg.eigvalsh(self.offset_cov(t))[-1]), 0.0))
+
+    def velocity(self) -> np.ndarray:
+        return np.asarray(self.filter.x[2:4], float)
+
+    def velocity_std(self) -> float:
+        """Standard deviation of the velocity estimate's x component, nm/s."""
+        return math.sqrt(self.filter.P[2, 2])
+
+    def creep_offset(self, tau: float) -> np.ndarray:
+        """The offset the recorded moves' creep is modelled to cause ``tau`` s after the epoch."""
+        return self.filter.creep.offset(tau)
+
+    def full_scan_done(self) -> None:
+        """The full scan has ended: the moves so far are the ones whose creep its rows
+        carried."""
+        self.scan.scan_ended(self.move_log)
+
+    def unskew(self, at: np.ndarray, tau: float) -> np.ndarray:
+        """A full-scan position seen ``tau`` s after the epoch, its row's drift taken out
+        (:class:`~nanoasm.executor.scan_drift.ScanDrift`, with ``θ`` as now known)."""
+        theta, _ = self.scan_theta()
+        return at - self.scan.jacobian(tau) @ theta - self.scan.creep_at(tau)
+
+    def skew_cov(self, tau: float) -> np.ndarray:
+        """Covariance (nm²) that :meth:`unskew` carries through ``θ``'s uncertainty."""
+        _, cov = self.scan_theta()
+        J = self.scan.jacobian(tau)
+        return J @ cov @ J.T
+
+    def full_scan_cov(self, t: float, tau: float) -> np.ndarray:
+        """Covariance (nm²) of where a point the full scan saw at ``τ`` lies in the
+        scanner frame at ``t``: the offset then less the row's drift, correlated as the
+        filter knows them; before the bootstrap, the drift model's between the two."""
+        if not self.filter.statics:
+            return self.scan.between_cov(t - self.epoch, tau)
+        t = self.clamp(t)
+        return self.filter.projected(t, np.eye(2), self.static_rows(np.eye(2), [tau, tau]))[1]
+
+    def radius(self, t: float, seen, skew_tau: float | None, options: ExecOptions) -> float:
+        """3σ error of a believed position: the sighting's and, for a position known
+        from the full scan alone, where that row's point is now; else the offset's."""
+        cov = np.zeros((2, 2)) if seen is None else np.asarray(seen.cov, float)
+        if seen is not None and skew_tau is not None:
+            cov = cov + self.full_scan_cov(t, skew_tau)
+        else:
+            cov = cov + self.offset_cov(t)
+        return 3.0 * math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0))
+
+    def information(self, t: float, normals, static, R) -> float:
+        """Reduction (nm²) of the offset covariance's trace at ``t`` by measuring the
+        components ``normals · offset + static θ`` with covariance ``R``."""
+        return self.filter.information(self.clamp(t), normals, R, static if self.filter.statics else None)
+
+    def observation_cov(self, t: float, cov) -> np.ndarray:
+        """A measured pose's covariance in the layout frame: the drift estimate's added."""
+        return np.asarray(cov, float) + self.offset_cov(t)
+
+    def clamp(self, t: float) -> float:
+        return max(t, self.filter.time)
+
+    def doc(self, t: float) -> dict:
+        t = self.clamp(t)
+        off = self.offset(t) - self.origin
+        return {"t": t, "offset": [float(off[0]), float(off[1])],
+                "cov": np.asarray(self.filter.offset(t).cov, float).tolist(),
+                "velocity": [float(v) for v in self.filter.x[2:4]]}
+
+    # -- references -----------------------------------------------------------------------
+    def after_plan(self, plan, belief, area) -> None:
+        """The first plan is made: its references are chosen push by push."""
+
+    def wants_reference(self, t: float, options: ExecOptions) -> bool:
+        """Whether a reference is due before a push at ``t``: none yet, the last update
+        older than ``reference_every``, or the offset's σ above ``reference_sigma``."""
+        f = self.filter
+        if not (f.measurements or f.resumed_measurements):
+            return True
+        return t - f.time >= options.reference_every or self.sigma(t) > options.reference_sigma
+
+    def reference_target(self, ctx, t: float, near, obj_id, *, force: bool = False) -> Candidate | None:
+        """The reference to scan before a push of ``obj_id`` near ``near`` (None: not
+        due, unless ``force``, or none left): of the untouched particles and the fixed
+        features, the one of most information per second."""
+        if not (force or self.wants_reference(t, ctx.options)):
+            return None
+        return best([*object_candidates(ctx, self, t, FULL_SCAN_VAR), *ctx.landmarks.candidates(ctx, self, t)])
+
+    def _consistent(self, t: float, z: np.ndarray, static: np.ndarray, R: np.ndarray) -> bool:
+        """Whether an offset measured at ``t`` against the full scan agrees with the
+        estimate (the χ² gate), without folding it in."""
+        mean, cov = self.filter.projected(self.clamp(t), np.eye(2), static)
+        nu = z - mean
+        return float(nu @ np.linalg.solve(cov + R, nu)) <= gate_threshold(2, self.params.gate_probability)
+
+    def measure(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+        """Fold a reference's measured position (scanner frame) into the filter, against
+        where the full scan saw it (its row's drift a part of the filter's state): None if
+        it is no reference, else whether it agreed. A rejected one moved on its own and
+        is no reference from then on; a quarantined one is only checked (re-validated
+        when it agrees)."""
+        if not refs.is_reference(obj_id, pushed, lost):
+            return None
+        raw, seen_t = refs.first_seen[obj_id]
+        tau = seen_t - self.epoch
+        z = np.asarray(at) - self.origin - raw + self.scan.creep_at(tau)
+        static = self.static_rows(np.eye(2), [tau, tau])
+        R = np.asarray(cov, float) + np.eye(2) * FULL_SCAN_VAR
+        ref = self.unskew(raw, tau)
+        if obj_id in refs.quarantine:
+            if self._consistent(t, z, static, R):
+                refs.revalidate(obj_id)
+                return True
+            refs.moved(obj_id, ref, seen_t)
+            return False
+        if self.filter.measure_projected(self.clamp(t), z, np.eye(2), R, label=obj_id, static=static).accepted:
+            self._accepted()
+            return True
+        refs.moved(obj_id, ref, seen_t)
+        self.reject(obj_id, t)
+        return False
+
+    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+        return self.measure(obj_id, at, cov, t, refs, pushed, lost)
+
+    def measure_feature(self, feature_id: str, z, H, R, t: float, taus=None) -> bool:
+        """Fold a fixed feature's measured offset components ``z`` along the rows of
+        ``H`` (layout frame, nm; covariance ``R``), each against where the full scan saw
+        its site at ``taus`` (s after the epoch); whether the gate accepted it."""
+        static = None if taus is None else self.static_rows(H, taus)
+        m = self.filter.measure_projected(self.clamp(t), z, H, R, label=feature_id, static=static)
+        if m.accepted:
+            self._accepted()
+        else:
+            self.reject(feature_id, t)
+        return m.accepted
+
+    def reject(self, label: str, t: float) -> None:
+        """A reference was rejected, or not found where it should be, at ``t``; the
+        streak counts different references (one reference out of place again and again
+        is its own trouble, not the estimate's)."""
+        if not self.rejected:
+            self.streak_start = float(t)
+        self.rejected.append(label)
+        self.rejections = len(set(self.rejected))
+
+    def _accepted(self) -> None:
+        self.rejections, self.rejected, self.streak_start = 0, [], None
+
+    # -- relocalisation -------------------------------------------------------------------
+    def needs_relocalisation(self, t: float, options: ExecOptions) -> tuple[str, str] | None:
+        """Why the estimate must be relocalised before going on, as ``(kind, text)``
+        with kind "pause", "rejections" or "sigma" (None: it need not, or a
+        relocalisation failed less than ``relocalise_pause`` ago)."""
+        if self.failed_at is not None and t - self.failed_at < options.relocalise_pause:
+            return None
+        if self.pause >= options.relocalise_pause:
+            return "pause", f"resumed after {self.pause:.0f} s"
+        if self.rejections >= options.relocalise_rejections:
+            return "rejections", (f"{self.rejections} references in a row ({', '.join(self.rejected)}) "
+                                  f"were not where the estimate put them")
+        s = self.sigma(t)
+        recent = self.relocalised_at is not None and t - self.relocalised_at < options.relocalise_pause
+        if s > options.relocalise_sigma and not recent:
+            return "sigma", f"the drift estimate's σ reached {s:.0f} nm"
+        return None
+
+    def resumed(self, pause: float) -> None:
+        """The run resumes after standing still ``pause`` s."""
+        self.pause = float(pause)
+
+    def relocalised(self, t: float, z, R, tau: float, refs: References) -> list[str]:
+        """Start the offset afresh at ``t`` from a registration: ``z`` (nm) is the drift
+        since the epoch less the full scan's at ``tau`` (where the window's first row
+        lies), covariance ``R``. The references rejected in the streak that led here did
+        not move: the drift did; they are re-admitted (and returned)."""
+        t = self.clamp(t)
+        self.filter.forget_offset(t, 1e4)
+        self.filter.measure_projected(t, z, np.eye(2), R, label="relocalisation",
+                                      static=self.static_rows(np.eye(2), [tau, tau]))
+        forgiven = sorted(set(self.rejected))
+        for label in forgiven:
+            refs.gated.discard(label)
+        self._accepted()
+        self.pause, self.failed_at, self.relocalised_at = 0.0, None, float(t)
+        return forgiven
+
+    def relocalise_failed(self, t: float) -> None:
+        """No window registered at ``t``: go on as before, without retrying for a while."""
+        self._accepted()
+        self.pause, self.failed_at = 0.0, float(t)
+
+    # -- creep ----------------------------------------------------------------------------
+    def moved_to(self, xy, t: float, start=None) -> None:
+        """The scanner reached ``xy`` (nm) at ``t``: creep follows the step from where the
+        last recorded move ended. A step shorter than the creep model's ``min_step`` is
+        not recorded and does not restart the chain, so its displacement is carried into
+        the next move: every displacement creeps, only its time is coarsened."""
+        xy = np.asarray(xy, float)
+        if self.creep_anchor is None:
+            self.creep_anchor = np.asarray(xy if start is None else start, float)
+        step = xy - self.creep_anchor
+        if math.hypot(*step) >= self.filter.params.creep.min_step:
+            t = max(t, self.filter.time)
+            step = np.asarray(step, float)
+            self.move_log.append((t, step))
+            self.filter.record_move(t, step)
+            self.creep_anchor = xy
+
+    def pending_travel(self, dac, current, config) -> list:
+        """The move a streamed path's own travel will be recorded as: ``[(t_end, step)]``,
+        or ``[]`` if it is too short to creep."""
+        from .trajectory import PUSH, TRAVEL
+
+        prof = dac.profile
+        travel = np.flatnonzero(prof.kind == TRAVEL)
+        push = np.flatnonzero(prof.kind == PUSH)
+        travel = travel[travel < push[0]] if push.size else travel
+        if not travel.size:
+            return []
+        k = int(prof.ends[travel[-1]])
+        if k < 1:
+            return []
+        end = dac.render(np.array([k])).nm[0, :2]
+        anchor = (self.creep_anchor if self.creep_anchor is not None
+                  else config.codes_to_nm(np.asarray(current))[:2])
+        step = end - anchor
+        if math.hypot(*step) < self.filter.params.creep.min_step:
+            return []
+        return [(dac.t0 + k / config.sample_rate, step)]
+
+    def creep_scale(self) -> float:
+        """The creep amplitude as learnt over the nominal one, ``(c + δc) / c``."""
+        f, c = self.filter, self.params.creep.amplitude
+        return 1.0 + float(f.x[-1]) / c if f.learn_creep and c > 0 else 1.0
+
+    def predicted(self, t0: float, pending=()):
+        """Thermal drift and the creep of the recorded and ``pending`` moves from ``t0``,
+        at the creep amplitude learnt so far."""
+        k = self.creep_scale()
+        thermal = self.offset(t0) - k * self.creep_offset(t0 - self.epoch)
+        return CreepingOffset(thermal, self.velocity(), t0, self.filter.creep, self.epoch, pending, scale=k)
+
+    # -- checkpoints ----------------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {"kind": "kalman", "origin": [float(v) for v in self.origin], "epoch": self.epoch,
+                "filter": self.filter.state_dict(),
+                "creep_anchor": None if self.creep_anchor is None else [float(v) for v in self.creep_anchor],
+                "rejected": list(self.rejected), "streak_start": self.streak_start,
+                "failed_at": self.failed_at, "relocalised_at": self.relocalised_at,
+                "scan": self.scan.state_dict()}
+
+    @classmethod
+    def from_state(cls, state: dict, options: ExecOptions) -> Kalman:
+        out = cls(state["origin"], state["epoch"], options)
+        out.filter = DriftFilter.from_state(out.params, state["filter"])
+        ca = state["creep_anchor"]
+        out.creep_anchor = None if ca is None else np.asarray(ca, float)
+        out.rejected = list(state.get("rejected", []))
+        out.rejections = len(set(out.rejected))
+        out.relocalised_at = state.get("relocalised_at")
+        out.streak_start, out.failed_at = state.get("streak_start"), state.get("failed_at")
+        out.scan = ScanDrift.from_state(state["scan"])
+        return out
+
+
+__all__ = ["FULL_SCAN_VAR", "Kalman", "filter_params"]

@@ -1,0 +1,131 @@
+"""Which drift reference to scan: the one that gives the most information per second.
+
+A reference measures the offset (an untouched particle: both coordinates) or some of
+its components (a fixed feature's straight edge: the coordinate normal to it; a corner:
+both). Its information is the reduction of the offset covariance's trace it would bring
+(``trace C - trace (C⁻¹ + Hᵀ R⁻¹ H)⁻¹``, nm²), its cost the instrument seconds its
+lines take (learnt from the instrument's own clock, :class:`LineTiming`) plus the
+travel to them and the creep that travel brings (:func:`travel_cost`); the choice is
+the largest ratio (ties by id, so runs are repeatable).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Covariance (nm² per axis) assumed for a located centre when choosing references.
+LOCATED_VAR = 4.0
+#: Seconds per line and per sample assumed until the instrument has shown its own.
+DEFAULT_LINE_OVERHEAD = 0.2
+DEFAULT_SAMPLE_TIME = 0.001
+#: What a long travel to a reference costs besides its time: its creep (a 5 µm move
+#: creeps some 150 nm over the next minutes, known to ±30 %), which the following
+#: pushes pay for; counted as this many seconds per nm of travel, there and back.
+CREEP_COST = 1.0 / 1000.0
+
+
+def travel_cost(here, there, max_speed: float) -> float:
+    """Seconds a reference ``there`` costs for its travel from ``here`` (scanner frame,
+    nm): the travel itself and :data:`CREEP_COST` for its creep; nothing if ``here`` is
+    unknown."""
+    if here is None:
+        return 0.0
+    d = math.dist(here, there)
+    return d / max_speed + 2.0 * d * CREEP_COST
+
+
+@dataclass(frozen=True, eq=False)
+class Candidate:
+    """A reference that could be scanned: ``kind`` "object" or "feature", its ``id``,
+    what it measures (``H`` (m, 2) directions, ``R`` (m, m) nm²), its cost in
+    instrument seconds and its information (nm² of trace)."""
+
+    kind: str
+    id: str
+    H: np.ndarray
+    R: np.ndarray
+    seconds: float
+    gain: float
+
+    @property
+    def rate(self) -> float:
+        """Information per second, nm²/s."""
+        return self.gain / max(self.seconds, 1e-9)
+
+
+def object_candidates(ctx, est, t: float, full_scan_var: float) -> list[Candidate]:
+    """Untouched particles as references for the estimator ``est`` at ``t``: never
+    pushed, not quarantined, not moved by the plan, not cut by the image border; each
+    measured against where the full scan saw it (``full_scan_var`` nm² per axis)."""
+    belief, refs = ctx.belief, ctx.refs
+    out = []
+    for oid, o in belief.objects.items():
+        if not (refs.usable(oid, ctx.ledger.pushed, belief.lost) and oid not in belief.touched
+                and oid not in ctx.moving and o.kind == "particle" and not o.edge):
+            continue
+        tau = refs.first_seen[oid][1] - est.epoch
+        R = np.eye(2) * (LOCATED_VAR + full_scan_var)
+        opts = ctx.scan_opts.resolved(o.diameter)
+        length = 2 * (o.radius + ctx.r_max(t, oid) + opts.margin)
+        seconds = (ctx.timing.seconds(2, 2 * int(length / opts.spacing))
+                   + travel_cost(ctx.here, ctx.position(oid) + est.offset(t), ctx.config.max_speed))
+        gain = est.information(t, np.eye(2), est.static_rows(np.eye(2), [tau, tau]), R)
+        out.append(Candidate("object", oid, np.eye(2), R, seconds, gain))
+    return out
+
+
+def best(candidates) -> Candidate | None:
+    """The candidate of most information per second (None if there is none)."""
+    cands = [c for c in candidates if c.gain > 0.0]
+    return max(cands, key=lambda c: (c.rate, c.id)) if cands else None
+
+
+@dataclass
+class LineTiming:
+    """What one local-scan line costs on this instrument: ``overhead + samples * per_sample``
+    seconds, fitted by least squares to the lines scanned so far (defaults until two
+    different lengths were seen)."""
+
+    n: int = 0
+    s_x: float = 0.0
+    s_y: float = 0.0
+    s_xx: float = 0.0
+    s_xy: float = 0.0
+
+    def observe(self, samples: int, seconds: float) -> None:
+        """One line of ``samples`` took ``seconds``; a line that took far longer than
+        predicted (a mode switch before it) is left out."""
+        if not (math.isfinite(seconds) and seconds >= 0.0):
+            return
+        if self.n >= 2 and seconds > 2.0 * self.seconds(1, samples) + 0.5:
+            return
+        x = float(samples)
+        self.n += 1
+        self.s_x += x
+        self.s_y += seconds
+        self.s_xx += x * x
+        self.s_xy += x * seconds
+
+    def fit(self) -> tuple[float, float]:
+        """``(overhead s, seconds per sample)``."""
+        det = self.n * self.s_xx - self.s_x ** 2
+        if self.n < 2 or det <= 1e-9 * max(self.s_xx, 1.0) * max(self.n, 1):
+            return DEFAULT_LINE_OVERHEAD, DEFAULT_SAMPLE_TIME
+        per = (self.n * self.s_xy - self.s_x * self.s_y) / det
+        over = (self.s_y - per * self.s_x) / self.n
+        return max(over, 0.0), max(per, 0.0)
+
+    def seconds(self, lines: int, samples: int) -> float:
+        """Predicted seconds of ``lines`` lines holding ``samples`` samples in all."""
+        over, per = self.fit()
+        return lines * over + samples * per
+
+    def state_dict(self) -> dict:
+        return {"n": self.n, "sums": [self.s_x, self.s_y, self.s_xx, self.s_xy]}
+
+    @classmethod
+    def from_state(cls, state: dict) -> LineTiming:
+        return cls(int(state["n"]), *(float(v) for v in state["sums"]))

@@ -1,0 +1,171 @@
+"""Relocalisation as a plan stub: when the drift estimate can no longer be trusted, scan a
+distinctive window of the sample again and register it to the first full scan.
+
+The first full scan (layout frame) shows what lay in each window when its rows were
+scanned; a new scan of the window, placed where the estimate puts it, shows the same
+content shifted by the estimate's error. Phase correlation
+(:func:`~nanoasm.executor.registration.register`) measures that shift with sub-pixel
+precision. Both scans run row by row at one line rate, so the drift during each shears
+them alike and the shift compares their first rows: the scanner offset of the layout
+origin when the window's first row was scanned is the estimate then, plus the shift,
+plus the drift the full scan carried at the reference's first row (the velocity and
+creep that take a full-scan position out of its row's drift). The filter then starts
+its offset afresh from that measurement (:meth:`~nanoasm.drift.DriftFilter.reinitialise`).
+
+Objects that moved since the full scan would spoil the match: pixels near where they
+were (in the full scan) and near where they are believed now (in the new scan) are
+masked out of the registration.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+
+from .context import RunContext
+from .engine import Msg
+from .registration import register
+
+#: Pixels within this distance (nm) beyond an object's footprint are masked when it moved.
+MASK_MARGIN = 40.0
+#: The widening of a moved object's mask for its uncertainty is at most this, nm.
+MAX_MASK = 300.0
+
+
+def keep_track(ctx: RunContext):
+    """Relocalise if the estimator says it must (see :meth:`needs_relocalisation`);
+    returns whether it did. An estimate merely grown uncertain is relocalised only when
+    a registration would make it at least twice as good: what a registration measures
+    is relative to the full scan, so the velocity that took the full scan's rows apart
+    bounds it."""
+    t = yield Msg("clock")
+    why = ctx.drift.needs_relocalisation(t, ctx.options)
+    if why is None:
+        return False
+    kind, text = why
+    if kind == "sigma" and not 2.0 * achievable(ctx) < ctx.drift.sigma(t):
+        return False
+    return (yield from relocalise(ctx, text))
+
+
+def achievable(ctx: RunContext) -> float:
+    """The σ (nm) a registration of the best window would leave: its own precision
+    (about a pixel's tenth) and the full scan's row drift at the window."""
+    marks, image = ctx.landmarks, ctx.full_scan
+    if image is None or not marks.windows or marks.rows is None:
+        return math.inf
+    x0, y0, x1, y1 = marks.windows[0].region
+    tau = marks.rows[0] + ((0.5 * (y0 + y1) - image.origin[1]) / image.pixel_size) * marks.rows[1] - ctx.drift.epoch
+    return math.sqrt((0.1 * image.pixel_size) ** 2 + 1.0 + float(np.linalg.eigvalsh(ctx.drift.skew_cov(tau))[-1]))
+
+
+def _disturbed(ctx: RunContext) -> list[str]:
+    """Objects that are no longer where the full scan saw them, or may not be."""
+    refs, belief = ctx.refs, ctx.belief
+    moved = set(ctx.ledger.pushed) | belief.touched | belief.lost | refs.gated | set(refs.quarantine)
+    return sorted(oid for oid in moved if oid in belief.objects)
+
+
+def _mask(image, bodies) -> np.ndarray:
+    """True where ``image`` (a HeightImage) is not near any of ``bodies`` ((Body, extra
+    nm): the footprint widened by ``extra`` and :data:`MASK_MARGIN`)."""
+    x, y = image.pixel_centres()
+    px = np.column_stack([np.repeat(x[None, :], len(y), 0).ravel(), np.repeat(y[:, None], len(x), 1).ravel()])
+    keep = np.ones(px.shape[0], bool)
+    for body, extra in bodies:
+        (ax, ay), (bx, by) = body.core()
+        d = np.array([bx - ax, by - ay])
+        u = np.clip(((px - (ax, ay)) @ d) / max(d @ d, 1e-12), 0.0, 1.0)
+        dist = np.hypot(px[:, 0] - ax - u * d[0], px[:, 1] - ay - u * d[1])
+        keep &= dist > body.radius + extra + MASK_MARGIN
+    return keep.reshape(image.shape)
+
+
+def relocalise(ctx: RunContext, why: str):
+    """Scan the best relocalisation windows until one registers; restart the offset from
+    it. Returns whether the estimate was relocalised (False: no window registered; the
+    run goes on with the estimate it had, its references re-admitted)."""
+    est, marks, image = ctx.drift, ctx.landmarks, ctx.full_scan
+    t_start = yield Msg("clock")
+    yield Msg("event", (f"relocalising the drift estimate: {why}",), {"level": "warn"})
+    if image is None or not marks.windows or marks.rows is None:
+        yield Msg("event", ("cannot relocalise: " + ("no full scan kept" if image is None
+                                                       else "no distinctive window in the full scan"),),
+                  {"level": "error"})
+        est.relocalise_failed(t_start)
+        return False
+    cfg = ctx.config
+    lo, hi = cfg.lower[:2], cfg.upper[:2]
+    moved = _disturbed(ctx)
+    first = {o.id: o for o in ctx.env_objects} if ctx.env_objects else {}
+    then = [(first[o], 0.0) for o in moved if o in first]
+    now = [(ctx.belief[o], min(est.radius(t_start, ctx.belief.seen.get(o), None, ctx.options), MAX_MASK))
+           for o in moved if o not in ctx.belief.lost]
+    t_full0, line_time = marks.rows
+    here = ctx.here if ctx.here is not None else est.offset(t_start) + 0.5 * np.asarray(image.extent)
+    near = sorted(marks.windows, key=lambda w: math.dist(here, _centre(w) + est.offset(t_start)))
+    for k, w in enumerate(near):
+        t = yield Msg("clock")
+        off = est.offset(t)
+        x0, y0, x1, y1 = w.region
+        region = (x0 + off[0], y0 + off[1], x1 + off[0], y1 + off[1])
+        if region[0] < lo[0] or region[1] < lo[1] or region[2] > hi[0] or region[3] > hi[1]:
+            continue
+        pixels = max(16, int(round((x1 - x0) / image.pixel_size)))
+        scan = yield Msg("full_scan", (pixels, region))
+        t_end = yield Msg("clock")
+        ctx.ledger.times["local_scan"] += t_end - t
+        ctx.ledger.counts["local_scans"] += 1
+        window = replace(scan, origin=(scan.origin[0] - off[0], scan.origin[1] - off[1]))
+        reg = register(image, window, reference_mask=_mask(image, then), moving_mask=_mask(window, now))
+        if not reg.ok:
+            yield Msg("event", (f"window {k + 1} did not register ({reg.reason})",), {"level": "warn"})
+            continue
+        row0 = (y0 - image.origin[1]) / image.pixel_size          # the reference's first row
+        tau = t_full0 + (row0 + 0.5) * line_time - est.epoch
+        t_row0 = t + 0.5 * (t_end - t) / pixels
+        # the drift since the epoch when the window's first row was scanned, less the
+        # drift the full scan's first row of it carried (creep of then taken out)
+        z = off - est.origin + np.asarray(reg.shift, float) + est.scan.creep_at(tau)
+        R = np.eye(2) * (reg.std ** 2 + 1.0)
+        old, since = est.offset(t_row0), est.streak_start
+        forgiven = est.relocalised(t_row0, z, R, tau, ctx.refs)
+        new, cov = est.offset(t_row0), est.offset_cov(t_row0)
+        marks.forgive(forgiven)
+        ctx.belief.lost.difference_update(forgiven)      # references missed for the drift's jump
+        _correct_beliefs(ctx, new - old, since)
+        ctx.ledger.purposes["relocalise"] += t_end - t_start
+        ctx.log_drift(t_row0)
+        shift = np.asarray(new - old)
+        yield Msg("event", (f"relocalised by window {k + 1} at ({0.5 * (x0 + x1):.0f}, {0.5 * (y0 + y1):.0f}) "
+                            f"(match {reg.score:.2f}): the estimate moved {shift[0]:+.0f}, {shift[1]:+.0f} nm "
+                            f"(± {math.sqrt(cov[0, 0]):.1f})",))
+        if est.emits:
+            yield Msg("emit", ("drift", est.doc(t_row0)))
+        return True
+    t_end = yield Msg("clock")
+    ctx.ledger.purposes["relocalise"] += t_end - t_start
+    est.relocalise_failed(t_end)
+    yield Msg("event", ("relocalisation failed: no window registered; going on with the estimate as it was",),
+              {"level": "error"})
+    return False
+
+
+def _centre(w) -> np.ndarray:
+    x0, y0, x1, y1 = w.region
+    return np.array([0.5 * (x0 + x1), 0.5 * (y0 + y1)])
+
+
+def _correct_beliefs(ctx: RunContext, shift: np.ndarray, since: float | None) -> None:
+    """Objects seen since the estimate went wrong (``since``: the first rejection of the
+    streak) were put into the layout frame with it: move them by what the relocalisation
+    corrected (``shift``: new less old offset)."""
+    if since is None or math.hypot(*shift) < 1e-9:
+        return
+    for oid, seen in ctx.belief.seen.items():
+        if seen.t >= since and oid not in ctx.belief.lost:
+            o = ctx.belief[oid]
+            at = np.asarray(o.at, float) - shift
+            ctx.belief.objects[oid] = replace(o, at=(float(at[0]), float(at[1])))

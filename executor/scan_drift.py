@@ -1,0 +1,116 @@
+"""The drift the first full scan's rows carried, as the bootstrap measures it.
+
+A full scan takes minutes, one row after the other, while the sample drifts: what row
+``i`` shows lies displaced by the drift ``D(τ_i)`` since the run's start (the layout
+frame is the scanner frame then). Every position taken from the full scan (an object's,
+a fixed feature's, a relocalisation window's) is put back by ``D(τ)``, for the whole
+run; the drift filter's own state follows the drift as it goes on changing later.
+
+The model over the scan is ``D(τ) = v τ + a τ²/2 + creep(τ)``: a velocity ``v`` that
+may change at a steady rate ``a`` (a drifting stage settles over hours: the velocity
+changes by a few hundredths of nm/s in ten minutes), and the creep of the scanner
+moves made before the scan ended (the drift filter's creep history folds old moves into
+a constant valid only from then on, so these are kept apart). ``θ = (v, a)`` starts
+from a prior and is measured by Bayesian least squares: scanning a reference again at
+``t`` gives its component along ``n`` of ``D(t) − D(τ)``, linear in ``θ``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nanoasm.drift.creep import creep_offset
+
+#: Prior standard deviation of the steady change of the drift velocity, nm/s².
+ACCELERATION_STD = 5e-5
+#: The velocity is known when its standard deviation is below this in every direction, nm/s.
+KNOWN_VELOCITY_STD = 0.05
+
+
+class ScanDrift:
+    """``θ = (vx, vy, ax, ay)`` (nm/s, nm/s²) with its covariance, and the moves made
+    before the full scan ended (``moves``: rows of ``(t, sx, sy)``, instrument s and nm).
+    Times ``τ`` are s after the epoch ``epoch``."""
+
+    def __init__(self, epoch: float, velocity_std: float, creep_amplitude: float, creep_tau: float,
+                 acceleration_std: float = ACCELERATION_STD):
+        self.epoch = float(epoch)
+        self.theta = np.zeros(4)
+        self.cov = np.diag([velocity_std ** 2] * 2 + [acceleration_std ** 2] * 2)
+        self.creep = (float(creep_amplitude), float(creep_tau))
+        self.moves = np.zeros((0, 3))
+        self.ended = False                   # the full scan has ended
+        self.info = np.zeros((4, 4))         # what the references measured, for the posterior
+        self.eta = np.zeros(4)
+        self._prior = self.cov.copy()
+
+    @staticmethod
+    def jacobian(tau: float) -> np.ndarray:
+        """``∂D(τ)/∂θ``, (2, 4)."""
+        return np.hstack([np.eye(2) * tau, np.eye(2) * 0.5 * tau * tau])
+
+    @property
+    def known(self) -> bool:
+        """Whether the velocity is known in every direction (:data:`KNOWN_VELOCITY_STD`)."""
+        return float(np.linalg.eigvalsh(self.cov[:2, :2])[-1]) < KNOWN_VELOCITY_STD ** 2
+
+    def creep_at(self, tau: float) -> np.ndarray:
+        """The creep (nm) of the moves made before the full scan ended, at ``τ``."""
+        a, tc = self.creep
+        return creep_offset(self.epoch + tau, self.moves[:, 0], self.moves[:, 1:], a, tc)
+
+    def offset(self, tau: float) -> np.ndarray:
+        """``D(τ)``, nm: the drift the full scan's row of time ``τ`` carried."""
+        return self.jacobian(tau) @ self.theta + self.creep_at(tau)
+
+    def offset_cov(self, tau: float) -> np.ndarray:
+        """Covariance (nm²) of :meth:`offset`."""
+        J = self.jacobian(tau)
+        return J @ self.cov @ J.T
+
+    def projected_cov(self, normals, taus) -> np.ndarray:
+        """Covariance (nm²) of the components ``n_k · D(τ_k)``, (m, m)."""
+        H = np.array([np.asarray(n, float) @ self.jacobian(tau) for n, tau in zip(normals, taus)])
+        return H @ self.cov @ H.T
+
+    def between_cov(self, tau1: float, tau0: float) -> np.ndarray:
+        """Covariance (nm²) of the drift from ``τ0`` to ``τ1`` as this model predicts it."""
+        J = self.jacobian(tau1) - self.jacobian(tau0)
+        return J @ self.cov @ J.T
+
+    def velocity_at(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
+        """The velocity (nm/s) at ``τ`` and its covariance."""
+        J = np.hstack([np.eye(2), np.eye(2) * tau])
+        return J @ self.theta, J @ self.cov @ J.T
+
+    def scan_ended(self, moves) -> None:
+        """The full scan has ended; ``moves``: the scanner moves so far, ``(t, step)``."""
+        self.moves = np.array([[t, s[0], s[1]] for t, s in moves], float).reshape(-1, 3)
+        self.ended = True
+
+    def measure(self, n, z: float, tau1: float, tau0: float, var: float) -> None:
+        """A reference seen at ``τ0`` in the full scan and at ``τ1`` again: ``z`` (nm, its
+        creep taken out) is the component along unit ``n`` of ``D(τ1) − D(τ0)``, with
+        variance ``var`` (nm²)."""
+        h = np.asarray(n, float) @ (self.jacobian(tau1) - self.jacobian(tau0))
+        self.info += np.outer(h, h) / var
+        self.eta += h * z / var
+        self.cov = np.linalg.inv(np.linalg.inv(self._prior) + self.info)
+        self.cov = 0.5 * (self.cov + self.cov.T)
+        self.theta = self.cov @ self.eta
+
+    def state_dict(self) -> dict:
+        return {"epoch": self.epoch, "theta": self.theta.tolist(), "cov": self.cov.tolist(),
+                "creep": list(self.creep), "moves": self.moves.tolist(), "prior": self._prior.tolist(),
+                "info": self.info.tolist(), "eta": self.eta.tolist(), "ended": self.ended}
+
+    @classmethod
+    def from_state(cls, state: dict) -> ScanDrift:
+        out = cls(state["epoch"], 1.0, *state["creep"])
+        out.theta = np.asarray(state["theta"], float)
+        out.cov = np.asarray(state["cov"], float)
+        out.moves = np.asarray(state["moves"], float).reshape(-1, 3)
+        out._prior = np.asarray(state["prior"], float)
+        out.info, out.eta = np.asarray(state["info"], float), np.asarray(state["eta"], float)
+        out.ended = bool(state["ended"])
+        return out
