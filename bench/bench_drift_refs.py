@@ -34,7 +34,7 @@ import statistics
 import subprocess
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
 from pathlib import Path
 
@@ -167,11 +167,21 @@ def main(argv: list[str] | None = None) -> int:
     cases = [(f, s, 0.0) for f in a.families.split(",") for s in seeds]
     jumps = [("allpushed", s, 300.0) for s in parse_seeds(a.jump_seeds)] if a.jump_seeds else []
     t0 = time.perf_counter()
+    todo = cases + jumps
+    done: dict[int, dict] = {}
     with ProcessPoolExecutor(a.workers) as pool:
-        results = list(pool.map(one_run, cases + jumps, chunksize=1))
-    rows, jump_rows = results[:len(cases)], results[len(cases):]
-    text = report(rows, jump_rows, argv, time.perf_counter() - t0)
-    Path(a.out).write_text(text)
+        futures = {pool.submit(one_run, c): k for k, c in enumerate(todo)}
+        for fut in as_completed(futures):
+            done[futures[fut]] = fut.result()
+            # the figures so far, rewritten after every run: a long sweep stopped loses nothing
+            rows = [done[k] for k in range(len(cases)) if k in done]
+            jump_rows = [done[k] for k in range(len(cases), len(todo)) if k in done]
+            partial = "" if len(done) == len(todo) else f"\n(partial: {len(done)} of {len(todo)} runs)\n"
+            text = report(rows, jump_rows, argv, time.perf_counter() - t0) + partial
+            tmp = Path(a.out).with_suffix(".tmp")
+            tmp.write_text(text)
+            tmp.replace(a.out)
+            print(f"{len(done)}/{len(todo)} {todo[futures[fut]]}", flush=True)
     print(text)
     return 0
 
