@@ -42,6 +42,7 @@ from .references import References
 from .checkpoints import checkpoint, restore
 from .strategy import ExecOptions
 from .summary import RunSummary, summary
+from .verdict import STATES, check_slots
 
 Procedure = Generator[Msg, Any, RunSummary]
 
@@ -63,6 +64,7 @@ class Assembly:
         self.ctx: RunContext | None = None       # set when the run starts or resumes
         self.env: Environment | None = None      # identified by the first full scan
         self.first_plan = None
+        self.slots: tuple = ()                   # the verdict of the final check scans
 
     def environment(self) -> Environment:
         """The belief as the planner's environment: objects seen only in the first full
@@ -198,6 +200,13 @@ class Assembly:
             t_now = yield Msg("clock")
             yield Msg("checkpoint", (checkpoint(self, ops[i:], done, corrections, t_now),))
         ledger.wall["execute"] += time.perf_counter() - w_start - (ledger.wall["plan"] - plan0)
+        # the verdict: what a scan finds in every slot, not what the belief expects
+        self.slots = yield from check_slots(ctx, self.layout, summary(self).assignment)
+        counts = {s: sum(v.state == s for v in self.slots) for s in STATES}
+        yield Msg("event", (f"check scans of the {len(self.slots)} slot(s): " +
+                            ", ".join(f"{n} {s}" for s, n in counts.items()),))
+        t_now = yield Msg("clock")                     # the belief as the check scans left it
+        yield Msg("checkpoint", (checkpoint(self, [], done, corrections, t_now),))
         result = summary(self)
         yield Msg("emit", ("result", result.to_doc()))
         return result

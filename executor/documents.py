@@ -27,6 +27,7 @@ from nanoasm.world.environment import environment_from_dict
 from .belief import Belief
 from .document_fields import DocumentError, Fields, body_from_stored, operation_from_stored, pair
 from .ledger import RunLedger
+from .slot_verdict import verdict_from_table
 
 # -- topics -------------------------------------------------------------------------------
 EVENT = "event"                  #: a log line (:class:`EventDoc`)
@@ -318,8 +319,9 @@ class ResultDoc:
     """What the run did: the slots assigned (less objects lost) and not, the objects
     pushed, counts, instrument time by activity (s), compute time by stage (s), failures
     ``(object, cause)``, the run's start (the layout frame's time), the layout origin
-    in the scanner frame then, and the instrument seconds the drift measurements took by
-    purpose (reference, relocalise, bootstrap; optional: logs before it lack it)."""
+    in the scanner frame then, the instrument seconds the drift measurements took by
+    purpose (reference, relocalise, bootstrap) and the verdict of the final check scans
+    on every slot (both optional: logs before them lack them)."""
 
     assignment: tuple[Assignment, ...]
     unfilled: tuple[Unfilled, ...]
@@ -331,6 +333,7 @@ class ResultDoc:
     epoch: float
     origin: tuple[float, float]
     purposes: dict[str, float] | None = None
+    slots: tuple = ()
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "assignment", tuple(self.assignment))
@@ -345,7 +348,8 @@ class ResultDoc:
                 "pushed": list(self.pushed), "counts": dict(self.counts), "times": dict(self.times),
                 "wall": dict(self.wall), "failures": [{"object": o, "cause": c} for o, c in self.failures],
                 "epoch": self.epoch, "origin": list(self.origin),
-                **({} if self.purposes is None else {"purposes": dict(self.purposes)})}
+                **({} if self.purposes is None else {"purposes": dict(self.purposes)}),
+                **({"slots": [v.to_dict() for v in self.slots]} if self.slots else {})}
 
     @classmethod
     def from_dict(cls, d: Any) -> ResultDoc:
@@ -363,7 +367,8 @@ class ResultDoc:
             failures.append(f.parse(lambda ft=ft: (ft.string("object"), ft.string("cause"))))
         return cls(assignment, unfilled, tuple(pushed), f.mapping("counts", int), f.mapping("times", float),
                    f.mapping("wall", float), tuple(failures), f.number("epoch"), f.numbers("origin", 2),
-                   f.mapping("purposes", float) if d.get("purposes") is not None else None)
+                   f.mapping("purposes", float) if d.get("purposes") is not None else None,
+                   f.parse(verdict_from_table, t) if d.get("slots") else ())
 
 
 #: Topic -> the document type its stored dicts are read back as.

@@ -10,6 +10,8 @@ from nanoasm.fileio import dumps_json, read_document, write_atomic
 from nanoasm.planner.plan import Assignment, Unfilled, assignments_from, unfilled_from
 from nanoasm.schema import Table, check_format
 
+from .slot_verdict import SlotVerdict, verdict_from_table
+
 FORMAT = "nanoasm.report/1"
 KINDS = ("particle", "rod")
 
@@ -69,6 +71,7 @@ class Report:
     counts: Counts = Counts()
     instrument_time: InstrumentTime = InstrumentTime()
     wall_time: WallTime = WallTime()
+    slots: tuple[SlotVerdict, ...] = ()
 
     def to_dict(self) -> dict:
         return {
@@ -79,6 +82,7 @@ class Report:
             "assignment": [a.to_dict() for a in self.assignment],
             "pushed": list(self.pushed),
             "unfilled": [u.to_dict() for u in self.unfilled],
+            "slots": [v.to_dict() for v in self.slots],
             "counts": _record_dict(self.counts),
             "instrument_time": _record_dict(self.instrument_time),
             "wall_time": _record_dict(self.wall_time),
@@ -108,7 +112,7 @@ def report_from_dict(data: dict, source: str | None = None) -> Report:
     t = Table(data, source)
     keys = ["format", "scene", "layout", "seed", "targets", "initial_objects", "final_objects",
             "assignment", "pushed", "unfilled", "counts", "instrument_time", "wall_time"]
-    t.check_keys(required=keys)
+    t.check_keys(required=keys, optional={"slots"})
     pushed = t.array("pushed")
     for i, p in enumerate(pushed, start=1):
         if not isinstance(p, str) or not p:
@@ -126,6 +130,7 @@ def report_from_dict(data: dict, source: str | None = None) -> Report:
         counts=_record(t, "counts", Counts, integer=True),
         instrument_time=_record(t, "instrument_time", InstrumentTime, integer=False),
         wall_time=_record(t, "wall_time", WallTime, integer=False),
+        slots=verdict_from_table(t) if "slots" in data else (),
     )
 
 

@@ -94,6 +94,34 @@ def line_doc(ctx: RunContext, a, b, heights, t: float) -> dict:
             "heights": np.asarray(heights, float).tolist(), "offset": [float(off[0]), float(off[1])]}
 
 
+#: Directions tried for a particle's first line (degrees; its second is perpendicular).
+DIRECTIONS = tuple(22.5 * k for k in range(8))
+
+
+def clear_direction(ctx: RunContext, at, half: float, exclude=()) -> np.ndarray:
+    """The direction of a particle's first scan line through ``at`` (layout frame) whose
+    cross (that line and the perpendicular one, ``half`` nm to each side) stays farthest
+    from the other believed objects: in a packed array a line along the rows runs into
+    the neighbours and their bumps hide the one looked for. x when nothing is near."""
+    import shapely
+
+    others = [o for oid, o in ctx.belief.objects.items() if oid not in exclude and oid not in ctx.belief.lost
+              and math.dist(o.at, at) < 2 * half + (o.length or o.diameter)]
+    if not others:
+        return np.array([1.0, 0.0])
+    cores = [o.geometry() for o in others]
+    radii = np.array([o.radius for o in others])
+    best, best_gap = np.array([1.0, 0.0]), -math.inf
+    for deg in DIRECTIONS:
+        u = np.array([math.cos(math.radians(deg)), math.sin(math.radians(deg))])
+        v = np.array([-u[1], u[0]])
+        lines = [shapely.LineString([at - half * w, at + half * w]) for w in (u, v)]
+        gap = min(float(shapely.distance(ln, c)) - r for ln in lines for c, r in zip(cores, radii))
+        if gap > best_gap + 1e-9:
+            best, best_gap = u, gap
+    return best
+
+
 def _pose(o, centre, angle) -> Body:
     """The located pose of belief object ``o`` at ``centre`` (a rod's measured angle)."""
     angle = angle if o.kind == "rod" and angle is not None else o.angle
@@ -117,7 +145,9 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True):
     if o.kind == "rod":
         pattern = rod_before(at, o.angle, o.length, o.diameter, r_max, measure_angle=True, options=ctx.scan_opts)
     else:
-        pattern = particle_before(at, o.diameter, r_max, options=ctx.scan_opts)
+        half = o.radius + r_max + ctx.scan_opts.resolved(o.diameter).margin
+        direction = clear_direction(ctx, ctx.position(obj_id), half, exclude={obj_id})
+        pattern = particle_before(at, o.diameter, r_max, direction=direction, options=ctx.scan_opts)
     res = yield from run_pattern(ctx, pattern)
     if not res.found and not widen:
         yield Msg("event", (f"{obj_id} not found within {r_max:.0f} nm",), {"level": "warn"})

@@ -32,6 +32,7 @@ class RunSummary:
     epoch: float = 0.0            # start of the run: the layout frame's time
     origin: tuple[float, float] = (0.0, 0.0)   # layout origin in the scanner frame at the epoch
     purposes: dict[str, float] = field(default_factory=dict)   # drift measurements' instrument s
+    slots: tuple = ()             # the run's verdict on every slot (executor.verdict.SlotVerdict)
 
     def to_doc(self) -> dict:
         """What the run did, for the run log."""
@@ -39,7 +40,8 @@ class RunSummary:
                 "unfilled": [u.to_dict() for u in self.unfilled],
                 "pushed": list(self.pushed), "counts": dict(vars(self.counts)), "times": dict(self.times),
                 "wall": dict(self.wall), "failures": [{"object": o, "cause": c} for o, c in self.failures],
-                "epoch": self.epoch, "origin": list(self.origin), "purposes": dict(self.purposes)}
+                "epoch": self.epoch, "origin": list(self.origin), "purposes": dict(self.purposes),
+                "slots": [v.to_dict() for v in self.slots]}
 
 
 def summary(asm) -> RunSummary:
@@ -57,4 +59,5 @@ def summary(asm) -> RunSummary:
     led, drift = ctx.ledger, ctx.drift
     return RunSummary(asm.env, asm.first_plan, ctx.belief, tuple(assignment), tuple(unfilled), led.pushed,
                       led.count(), dict(led.times), dict(led.wall), led.drift, led.failures, drift.epoch,
-                      (float(drift.origin[0]), float(drift.origin[1])), dict(led.purposes))
+                      (float(drift.origin[0]), float(drift.origin[1])), dict(led.purposes),
+                      tuple(getattr(asm, "slots", ())))

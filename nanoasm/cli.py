@@ -337,6 +337,9 @@ Live = Annotated[bool, typer.Option("--live", help="Stream the run live over Fox
                                     "protocol on 127.0.0.1 (open it in Foxglove).")]
 LivePort = Annotated[int, typer.Option("--live-port", help="Port of the --live stream.")]
 StrategyName = Annotated[str, typer.Option("--strategy", help="open-loop, local-scan, kalman, full or anchor.")]
+#: Strategies whose final check scans know where the slots are (they estimate the drift
+#: against the full scan): the ones a run on an instrument may use.
+VERIFIED = ("full", "kalman")
 ReportFile = Annotated[Optional[Path], typer.Option("--report", help="Write the report (JSON) here.")]
 Resume = Annotated[Optional[Path], typer.Option("--resume", help="Go on with the stopped run of this log from "
                                                               "its last checkpoint (writes LOG-resumed.mcap "
@@ -452,38 +455,58 @@ def run_cmd(
     if instrument is None:
         raise InputError(None, "--instrument", "is required: the instrument file (nanoasm.instrument/1)")
     _check_run_options(strategy, report)
+    if strategy not in VERIFIED:
+        # without a drift estimate a check scan cannot tell a drifted object from a placed one:
+        # its verdict would be as blind as its pushes (dry-runs compare it with the truth)
+        raise InputError(None, "--strategy", f"{strategy} measures no drift, so its report could not say truly "
+                                             f"which slots are filled; on an instrument use {' or '.join(VERIFIED)} "
+                                             f"(the others are for dry-runs)")
     if resume is not None and layout_file is not None:
         raise InputError(None, "--resume", "takes the layout from the log; give no LAYOUT")
     if resume is None and layout_file is None:
         raise InputError(None, "LAYOUT", "is required (or --resume LOG)")
     rep = run_files(instrument, layout_file, strategy=strategy, resume_from=resume,
                     log=LogTo(log, live, live_port), report=report, progress=_run_progress("run"))
-    print(f"run: {len(rep.assignment)} of {len(rep.targets)} slot(s) assigned, "
+    states = {s: sum(v.state == s for v in rep.slots) for s in ("filled", "missed", "unfilled")}
+    print(f"run: {states['filled']} of {len(rep.targets)} slot(s) filled by the check scans "
+          f"({states['missed']} missed, {states['unfilled']} unfilled), "
           f"{rep.counts.pushes} push(es), {rep.counts.failed_pushes} failed; "
           f"{rep.instrument_time.total / 60:.1f} min")
+    for v in rep.slots:
+        if v.state != "filled":
+            print(f"  {v.state} {v.target}" + ("" if v.error is None else f": {v.error:.1f} nm off"))
 
 
 def _print_summary(layout, outcome) -> None:
+    """The dry-run's summary: the run's own verdict on every slot (its check scans), the
+    simulated truth beside it, and a warning wherever the two differ."""
     from rich.console import Console
     from rich.table import Table as RichTable
 
     rep = outcome.report
     n = len(layout.targets)
     t = rep.instrument_time
-    table = RichTable(title=f"dry-run of {layout.name or 'layout'}: {len(outcome.filled)} of {n} slot(s) filled",
-                      show_header=False)
-    table.add_row("RMS error of filled slots", f"{outcome.rms_error:.1f} nm")
+    mine = outcome.verdict_filled
+    table = RichTable(title=f"dry-run of {layout.name or 'layout'}: {len(mine)} of {n} slot(s) filled "
+                            f"(the run's check scans)", show_header=False)
+    table.add_row("simulated truth", f"{len(outcome.truly_filled)} of {n} filled; RMS error of the assigned "
+                                     f"slots filled {outcome.rms_error:.1f} nm")
+    if outcome.disagreements:
+        table.add_row("[bold red]warning[/]", "the run's verdict differs from the truth on "
+                      + ", ".join(outcome.disagreements))
     table.add_row("pushes (failed)", f"{rep.counts.pushes} ({rep.counts.failed_pushes})")
     table.add_row("local scans / replans", f"{rep.counts.local_scans} / {rep.counts.replans}")
     table.add_row("instrument time", f"{t.total / 60:.1f} min (full scan {t.full_scan / 60:.1f}, local scans "
                                      f"{t.local_scan / 60:.1f}, pushing {t.push / 60:.1f}, travel {t.travel / 60:.1f})")
     w = rep.wall_time
     table.add_row("wall time", f"{w.total:.1f} s (identify {w.identify:.1f}, plan {w.plan:.1f}, execute {w.execute:.1f})")
-    for u in rep.unfilled:
-        table.add_row(f"unfilled {u.target}", u.reason)
-    missed = [a.target for a in rep.assignment if a.target not in outcome.filled]
-    for tid in missed:
-        table.add_row(f"missed {tid}", f"{outcome.errors.get(tid, float('nan')):.1f} nm off")
+    reasons = {u.target: u.reason for u in rep.unfilled}
+    for v in rep.slots:
+        if v.state == "filled":
+            continue
+        found = "nothing found there" if v.error is None else f"{v.error:.1f} nm off"
+        why = reasons.get(v.target, f"{v.object}: {found}" if v.object else found)
+        table.add_row(f"{v.state} {v.target}", why)
     Console().print(table)
 
 

@@ -92,15 +92,64 @@ class _DriftLog:
 
 
 @dataclass(frozen=True)
+class PushEnd:
+    """One push as the truth saw it: the object (the run's id), how long the push was
+    planned (nm, from where it started to where it was to end) and how far from that end
+    the object truly came to rest (nm, layout frame)."""
+
+    object: str
+    planned: float
+    off: float
+
+
+class _PushLog:
+    """A subscriber keeping, after every push, where the pushed objects truly are."""
+
+    def __init__(self, sim: SimulatedAFM):
+        self.sim = sim
+        self.rows: list[tuple[str, tuple, tuple, dict]] = []
+
+    def __call__(self, topic: str, doc) -> None:
+        if topic == "push":
+            d = as_dict(doc)
+            self.rows.append((d["op"]["object"], tuple(d["before"]), tuple(d["op"]["expect"]["at"]),
+                              {b.id: b.at for b in self.sim.truth()}))
+
+    def ends(self, sim: SimulatedAFM, summary: RunSummary, ids: dict[str, str]) -> tuple[PushEnd, ...]:
+        ox, oy = sim.true_offset(summary.epoch)
+        dx, dy = ox - summary.origin[0], oy - summary.origin[1]
+        out = []
+        for obj, before, expect, truth in self.rows:
+            at = truth.get(ids.get(obj, ""))
+            if at is not None:
+                out.append(PushEnd(obj, math.dist(before, expect), math.dist((at[0] + dx, at[1] + dy), expect)))
+        return tuple(out)
+
+
+@dataclass(frozen=True)
 class Outcome:
-    """A dry-run's report plus the figures derived from it, and its drift estimates
-    beside the simulated truth."""
+    """A dry-run's report plus the figures derived from it, its drift estimates beside
+    the simulated truth, and the slots the truth has filled (:func:`truth_slots`, the
+    way an outside scorer counts) against the run's own verdict."""
 
     report: Report
     summary: RunSummary
     filled: tuple[str, ...]
     errors: dict[str, float]          # centre error of every assigned slot, nm
     drift: tuple[DriftPoint, ...] = ()
+    truly_filled: tuple[str, ...] = ()
+    pushes: tuple[PushEnd, ...] = ()
+
+    @property
+    def verdict_filled(self) -> tuple[str, ...]:
+        """The slots the run's own check scans call filled."""
+        return tuple(v.target for v in self.report.slots if v.state == "filled")
+
+    @property
+    def disagreements(self) -> tuple[str, ...]:
+        """Slots where the run's verdict and the truth differ (filled or not)."""
+        mine, truth = set(self.verdict_filled), set(self.truly_filled)
+        return tuple(sorted(mine ^ truth))
 
     @property
     def rms_error(self) -> float:
@@ -181,6 +230,18 @@ def filled_slots(layout: Layout, assignment, final: dict[str, Body]) -> tuple[tu
     return tuple(filled), errors
 
 
+def truth_slots(layout: Layout, final) -> tuple[str, ...]:
+    """The slots that true objects fill, as an outside scorer counts them: the largest
+    matching of slots to distinct objects of their kind and size within the layout's
+    tolerance (position, and a rod's angle), whatever the run assigned."""
+    targets, final = list(layout.targets), list(final)
+    if not targets or not final:
+        return ()
+    ok = np.array([[in_slot(t, o, layout.tolerance) for o in final] for t in targets], dtype=bool)
+    rows, cols = linear_sum_assignment(-ok.astype(float))
+    return tuple(sorted(targets[i].id for i, j in zip(rows, cols) if ok[i, j]))
+
+
 def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
             options: ExecOptions | None = None, plan_options: PlanOptions | None = None,
             subscribers: list[Subscriber] | None = None, scene_name: str | None = None,
@@ -204,8 +265,8 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
         start_clock = sim.clock()
         initial_sample = sim.truth()
     assembly = Assembly(layout, options, plan_options)
-    drift_log = _DriftLog()
-    subscribers = [*(subscribers or ()), drift_log]
+    drift_log, push_log = _DriftLog(), _PushLog(sim)
+    subscribers = [*(subscribers or ()), drift_log, push_log]
     if keep_sim is not None:
         subscribers.append(SimKeeper(keep_sim, sim, {"start_clock": start_clock, "initial": initial_sample}))
     engine = RunEngine(sim, subscribers)
@@ -225,7 +286,8 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     report = report_of(summary, layout, total, time.perf_counter() - t_wall, layout_name=layout_name,
                        scene_name=scene_name, seed=seed, objects=(initial, final), ids=ids)
     filled, errors = filled_slots(layout, report.assignment, {b.id: b for b in final})
-    return Outcome(report, summary, filled, errors, drift_log.against(sim, summary.epoch))
+    return Outcome(report, summary, filled, errors, drift_log.against(sim, summary.epoch),
+                   truth_slots(layout, final), push_log.ends(sim, summary, ids))
 
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from nanoasm.bodies import Body
@@ -86,4 +86,6 @@ def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall
         pushed=tuple(ids.get(p, p) for p in summary.pushed), unfilled=summary.unfilled, counts=summary.counts,
         instrument_time=InstrumentTime(t["full_scan"], t["local_scan"], t["push"], t["travel"], instrument_total),
         wall_time=WallTime(w["identify"], w["plan"], w["execute"], wall_total),
+        slots=tuple(replace(v, object=None if v.object is None else ids.get(v.object, v.object))
+                    for v in summary.slots),
     )

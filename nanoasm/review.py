@@ -50,6 +50,7 @@ class Review:
     layout: Any = None
     source: str = "belief"                     # what slot errors are measured against
     slots: list[SlotRow] = field(default_factory=list)
+    verdict: list = field(default_factory=list)     # the run's own check scans (SlotVerdict)
     unfilled: list[tuple[str, str]] = field(default_factory=list)
     pushes: int = 0
     failed_pushes: int = 0
@@ -107,6 +108,7 @@ def review(path: str | os.PathLike) -> Review:
     rev.failed_pushes = int(counts.get("failed_pushes", len(failed)))
     if res is not None:
         rev.failures = list(res.failures)
+        rev.verdict = list(res.slots)
     else:
         rev.failures = [(str(o), "lost") for o in sorted(lost)]
         rev.failures += [(p.op.object, p.verdict) for p in failed]
@@ -222,10 +224,21 @@ def print_review(rev: Review, console=None) -> None:
     for k in ("strategy", "seed", "command", "resumed_from"):
         if rev.metadata.get(k):
             table.add_row(k.replace("_", " "), rev.metadata[k])
+    mine = {v.target: v for v in rev.verdict}
+    if rev.verdict:
+        states = Counter(v.state for v in rev.verdict)
+        table.add_row("the run's verdict", ", ".join(f"{states.get(k, 0)} {k}" for k in ("filled", "missed",
+                                                                                        "unfilled"))
+                      + " (its check scans of every slot)")
     for s in rev.slots:
         err = "no pose" if s.error is None else f"{s.error:.1f} nm"
-        table.add_row(f"slot {s.target}", f"{'filled' if s.filled else 'missed'} by {s.object}: {err} off "
-                                          f"({rev.source})")
+        row = f"{'filled' if s.filled else 'missed'} by {s.object}: {err} off ({rev.source})"
+        v = mine.get(s.target)
+        if v is not None:
+            said = v.state + ("" if v.error is None else f", {v.error:.1f} nm")
+            differs = rev.source == "simulated truth" and (v.state == "filled") != s.filled
+            row += f"; the run said {said}" + (" [bold red](differs)[/]" if differs else "")
+        table.add_row(f"slot {s.target}", row)
     for target, reason in rev.unfilled:
         table.add_row(f"unfilled {target}", reason)
     causes = Counter(c for _, c in rev.failures)

@@ -66,6 +66,8 @@ def record(case: str) -> dict:
         "pushed": list(rep.pushed),
         "failures": [list(f) for f in out.summary.failures],
         "filled": list(out.filled),
+        "verdict": [[v.target, v.state] for v in rep.slots],
+        "truly_filled": list(out.truly_filled),
         "instrument_time": [_r(it.full_scan), _r(it.local_scan), _r(it.push), _r(it.travel), _r(it.total)],
         "final": {b.id: [_r(b.at[0]), _r(b.at[1]), None if b.angle is None else _r(b.angle)]
                   for b in rep.final_objects},

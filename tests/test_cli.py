@@ -148,6 +148,14 @@ def test_run_without_the_ni_driver_says_so_in_one_line(capsys, tmp_path):
     assert not (tmp_path / "r.json").exists()
 
 
+@pytest.mark.parametrize("strategy", ["open-loop", "local-scan", "anchor"])
+def test_run_refuses_a_strategy_whose_report_could_not_tell_the_truth(capsys, tmp_path, strategy):
+    code, _, err = run(capsys, "run", str(example("bowtie.toml")), "--instrument",
+                       str(example("instrument_ni.toml")), "--strategy", strategy, "--report", str(tmp_path / "r.json"))
+    assert code == 1 and f"--strategy: {strategy} measures no drift" in one_error_line(err)
+    assert not (tmp_path / "r.json").exists()
+
+
 def test_dry_run_refuses_bad_options(capsys, tmp_path):
     code, _, err = run(capsys, "dry-run", "--strategy", "psychic")
     assert code == 1 and "--strategy: unknown strategy" in one_error_line(err)

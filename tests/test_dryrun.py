@@ -47,8 +47,8 @@ def test_every_strategy_runs_to_a_valid_report(runs, bowtie, strategy):
     assert t.full_scan + t.local_scan + t.push + t.travel <= t.total + 1e-6
     assert {a.target for a in rep.assignment} | {u.target for u in rep.unfilled} == \
         {tg.id for tg in layout.targets}
-    if strategy == "open-loop":
-        assert rep.counts.local_scans == 0 and t.local_scan == 0
+    if strategy == "open-loop":                # no scans but the final check of every slot
+        assert rep.counts.local_scans == len(layout.targets) and 0 < t.local_scan < 120
     else:
         assert rep.counts.local_scans >= rep.counts.pushes
 

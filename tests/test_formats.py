@@ -34,6 +34,17 @@ def test_json_golden_files_round_trip_byte_for_byte(name, loader):
     assert loader(GOLDEN / name).dumps() == text
 
 
+def test_a_report_keeps_the_runs_verdict_and_reads_one_written_before_it():
+    from nanoasm.executor.report import report_from_dict
+
+    data = json.loads((GOLDEN / "report.json").read_text())
+    (v,) = load_report(GOLDEN / "report.json").slots
+    assert (v.target, v.object, v.state, v.error) == ("t1", "o1", "filled", 3.25)
+    assert report_from_dict({k: x for k, x in data.items() if k != "slots"}).slots == ()
+    with pytest.raises(InputError, match=r"slots\[1\]\.state: must be one of filled, missed, unfilled"):
+        report_from_dict({**data, "slots": [{**data["slots"][0], "state": "full"}]}, "r.json")
+
+
 def test_golden_values():
     env = load_environment(GOLDEN / "env.json")
     assert env.object("o3").kind == "wire" and env.object("o3").edge

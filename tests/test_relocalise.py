@@ -48,6 +48,7 @@ def test_the_drift_estimate_stays_within_its_uncertainty_of_the_truth(mixed_run)
     assert rms <= 10.0 and inside >= 0.95, (rms, inside)
     assert max(p.sigma for p in pts[1:]) <= 50.0
     assert set(out.filled) == {t.id for t in layout.targets}
+    assert set(out.verdict_filled) == set(out.truly_filled) and not out.disagreements
 
 
 def test_fixed_features_measure_drift_and_cost_little(mixed_run):
@@ -64,6 +65,6 @@ def test_a_drift_jump_mid_run_is_caught_by_relocalisation_and_every_slot_still_f
     out = dry_run(_with_jump(scene, 300.0, 700.0), layout, options=ExecOptions(strategy="full"),
                   subscribers=[events])
     assert any(t.startswith("relocalised by window") for t in events.texts), events.texts
-    assert set(out.filled) == {t.id for t in layout.targets}
+    assert set(out.filled) == {t.id for t in layout.targets} and not out.disagreements
     late = [p for p in out.drift if p.t > 1000.0]
     assert late and max(p.error for p in late) < 15.0

@@ -1,0 +1,89 @@
+"""The run's verdict on every slot, from check scans at the end: what the report says is
+filled is what a scan found there, not what the belief expects.
+
+For each target of the layout, a local scan centred on the slot (the ch. 5 pattern of
+its kind, the lines reaching past the position tolerance and the drift estimate's
+uncertainty) looks for an object. A slot is ``filled`` when an object of its kind sits
+within the layout's tolerance (position, size from the object's height, a rod's angle
+and length); otherwise ``missed`` when an object was assigned to it, else ``unfilled``.
+``error`` is the measured centre error (nm), None when nothing was found there. An
+object found in its slot is observed there (the belief ends as the scans saw it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from nanoasm.cad.layout import Layout
+
+from .context import RunContext
+from .engine import Msg
+from .local_scan import particle_before, rod_before
+from .scan_steps import clear_direction, run_pattern
+from .slot_verdict import STATES, SlotVerdict
+
+__all__ = ["STATES", "SlotVerdict", "check_slots"]
+
+#: Line beyond a particle slot's reach (nm): substrate to level the line on, not so much
+#: that it runs into the neighbours of a packed array (150 nm apart).
+CHECK_MARGIN = 20.0
+
+def _size_ok(target, res, tol) -> bool:
+    """Whether the object a check scan found is of the slot's size: its height (a
+    particle's diameter; a rod's thickness) and a rod's length."""
+    peaks = [ln.edges.peak for ln in res.lines if ln.edges.found and ln.edges.peak is not None]
+    if peaks and abs(max(peaks) - target.diameter) > tol.size * target.diameter:
+        return False
+    if target.kind == "rod" and res.length is not None:
+        return abs(res.length - target.length) <= tol.size * target.length + target.diameter
+    return True
+
+
+def _angle_error(a: float, b: float) -> float:
+    d = abs((a - b) % 180.0)
+    return min(d, 180.0 - d)
+
+
+def check_slots(ctx: RunContext, layout: Layout, assignment) -> Any:
+    """Scan every slot of ``layout`` (plan stub); returns its :class:`SlotVerdict`s in
+    the layout's order. ``assignment``: the run's final (target, object) pairs."""
+    tol = layout.tolerance
+    assigned = {a.target: a.object for a in assignment}
+    out = []
+    for target in layout.targets:
+        obj = assigned.get(target.id)
+        t = yield Msg("clock")
+        off = ctx.offset(t)
+        reach = tol.position + ctx.r_max(t)
+        at = np.asarray(target.at, float) + off
+        if target.kind == "rod":
+            pattern = rod_before(at, target.angle, target.length, target.diameter, reach, measure_angle=True,
+                                 options=ctx.scan_opts)
+        else:
+            # short lines: a slot's neighbours in a packed array are a few tens of nm away
+            opts = replace(ctx.scan_opts, margin=CHECK_MARGIN)
+            half = target.radius + reach + CHECK_MARGIN
+            exclude = {obj} if obj is not None else set()
+            direction = clear_direction(ctx, np.asarray(target.at, float), half, exclude=exclude)
+            pattern = particle_before(at, target.diameter, reach, direction=direction, options=opts)
+        res = yield from run_pattern(ctx, pattern)
+        state, error = ("missed" if obj is not None else "unfilled"), None
+        if res.found:
+            t_scan = ctx.scan_ref if ctx.scan_ref is not None else t
+            centre = np.asarray(res.centre, float) - ctx.offset(t_scan)
+            error = math.dist(centre, target.at)
+            good = error <= tol.position and _size_ok(target, res, tol)
+            if target.kind == "rod":
+                good = good and res.angle is not None and _angle_error(res.angle, target.angle) <= tol.angle
+            if good:
+                state = "filled"
+            if obj is not None and obj in ctx.belief.objects and obj not in ctx.belief.lost \
+                    and math.dist(ctx.belief[obj].at, centre) <= reach + tol.position:
+                cov = res.cov if res.cov is not None else np.eye(2) * 4.0
+                ctx.observe(obj, centre, t_scan, cov, angle=res.angle if target.kind == "rod" else None)
+        out.append(SlotVerdict(target.id, obj, state, error))
+    return tuple(out)
