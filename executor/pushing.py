@@ -16,6 +16,7 @@ from .drift_steps import emit_drift, fold, suspect_drift, take_reference
 from .engine import Msg
 from .monitor import Verdict
 from .motion_steps import stream_push
+from .push_legs import push_in_legs
 from .reaim import particle_push, rod_push
 from .references import swept_area
 from .relocalise import keep_track
@@ -93,9 +94,16 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
             op = particle_push(op, start.at, start.radius, plan_options.tip_radius, plan_options.lead)
             if op is None:
                 return "ok"
-    verdict = yield from stream_push(ctx, op, lever, course.preload.get(obj_id, 1.0))
+    preload = course.preload.get(obj_id, 1.0)
+    if scans and start.kind == "particle":      # long pushes in legs, a line across between
+        verdict, legs, _ = yield from push_in_legs(ctx, op, start, lever, preload, plan_options.tip_radius,
+                                                  plan_options.lead)
+        if verdict is None:
+            return "ok"
+    else:
+        verdict, legs = (yield from stream_push(ctx, op, lever, preload)), 1
     ledger = ctx.ledger
-    ledger.counts["pushes"] += 1
+    ledger.counts["pushes"] += legs
     ledger.pushed_once(obj_id)
     ctx.belief.expect(obj_id, op.expect.at, op.expect.angle)
     if verdict.failed:

@@ -86,6 +86,12 @@ class ExecOptions:
     creep_amplitude_std : float
         Standard deviation of the creep amplitude the drift filter assumes, per decade
         (the nominal amplitude is 0.01; a real scanner's is known to about ±30 %).
+    push_heading_std : float
+        Scatter of a pushed particle's direction of motion about the tip's, degrees: with
+        ``capture_angle`` it sets the legs of a long push (:mod:`.push_legs`).
+    capture_angle : float
+        Half-angle of the cone about the tip's motion within which the tip carries a
+        particle, degrees.
     drift_q : float
         Process noise of the drift filter: random walk of the drift velocity, nm²/s³.
     drift_q_offset : float
@@ -137,6 +143,10 @@ class ExecOptions:
                                      positive=True)
     creep_amplitude_std: float = param(0.002, "1/decade", "standard deviation of the creep amplitude "
                                        "the drift filter assumes", nonnegative=True)
+    push_heading_std: float = param(2.0, "deg", "scatter of a pushed particle's direction about the tip's",
+                                    positive=True, hi=45.0)
+    capture_angle: float = param(45.0, "deg", "half-angle of the cone within which the tip carries a particle",
+                                 positive=True, hi=90.0)
     drift_q: float = param(1e-6, "nm²/s³", "random walk of the drift velocity", nonnegative=True)
     drift_q_offset: float = param(0.1, "nm²/s", "white noise on the drift offset", nonnegative=True)
     max_corrections: int = param(2, "-", "extra pushes to bring an object into its slot", nonnegative=True)

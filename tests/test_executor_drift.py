@@ -72,7 +72,8 @@ def errors(sim, summary, estimates):
 
 def test_the_run_has_enough_to_track(run):
     sim, summary, pushes = run
-    assert summary.counts.pushes >= 8 and len(summary.drift) >= 5 and len(pushes) == summary.counts.pushes
+    # a push document per operation; the count is of strokes (a long push goes in legs)
+    assert len(pushes) >= 8 and len(summary.drift) >= 5 and summary.counts.pushes >= len(pushes)
 
 
 @pytest.mark.parametrize("source", ["drift log", "push documents"])

@@ -1,0 +1,79 @@
+"""Long particle pushes in legs: the capture model against the simulated physics, and a
+long push that a single stroke loses but legs bring in."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from simkit import particle, push, world
+
+from nanoasm.executor.belief import Belief
+from nanoasm.executor.context import RunContext
+from nanoasm.executor.engine import RunEngine
+from nanoasm.executor.estimators import NoDrift
+from nanoasm.executor.push_legs import MIN_LEG, leg_length, push_in_legs
+from nanoasm.executor.references import References
+from nanoasm.executor.strategy import ExecOptions
+from nanoasm.planner.plan import Expect, Operation
+from nanoasm.world.cantilever import SEED_LEVER
+from nanoasm.world.environment import EnvObject, Environment
+
+
+def test_the_leg_closed_form_and_its_limits():
+    capture = 55.0 * math.sin(math.radians(45.0))
+    assert leg_length(45.0, 10.0, 0.0, 2.0, 45.0) == pytest.approx(capture / 3 / math.tan(math.radians(2.0)))
+    assert leg_length(45.0, 10.0, 3.0, 2.0, 45.0) == pytest.approx(
+        math.sqrt((capture / 3) ** 2 - 9.0) / math.tan(math.radians(2.0)), rel=1e-6)
+    assert leg_length(45.0, 10.0, 30.0, 2.0, 45.0) == MIN_LEG          # too uncertain: the least leg
+    known = leg_length(45.0, 10.0, 3.0, 1.0, 45.0, known=5.5)             # a particle turning 5.5°
+    assert known * math.tan(math.radians(5.5)) + 3 * math.hypot(3.0, known * math.tan(math.radians(1.0))) \
+        == pytest.approx(capture, rel=1e-6)
+
+
+@given(st.floats(20.0, 100.0), st.floats(0.0, 10.0), st.floats(0.5, 6.0), st.floats(0.0, 8.0))
+def test_legs_shrink_with_every_uncertainty(radius, lateral, spread, known):
+    ell = leg_length(radius, 10.0, lateral, spread, 45.0, known)
+    assert ell >= MIN_LEG
+    assert leg_length(radius, 10.0, lateral + 1.0, spread, 45.0, known) <= ell + 1e-6
+    assert leg_length(radius, 10.0, lateral, spread * 1.5, 45.0, known) <= ell + 1e-6
+    assert leg_length(radius, 10.0, lateral, spread, 45.0, known + 1.0) <= ell + 1e-6
+
+
+@pytest.mark.parametrize("error", [1.0, 2.0, 4.0, 6.0])
+def test_the_capture_model_predicts_where_the_simulated_tip_drops_a_particle(error):
+    sim = world([particle((1000, 2000), d=90.0)])
+    sim._world.table.path_error[0] = error          # the particle's own turn, degrees
+    push(sim, (1000 - 45 - 10 - 5, 2000), (4500, 2000))
+    (b,) = sim.truth()
+    capture = (45.0 + sim._world.tip_radius) * math.sin(math.radians(sim.params.sim.capture_angle))
+    predicted = capture / math.tan(math.radians(error))
+    assert b.at[0] - 1000.0 == pytest.approx(predicted, rel=0.02)     # carried that far, then dropped
+
+
+def _one_particle_run(error: float):
+    sim = world([particle((1000, 2000), d=90.0)])
+    sim._world.table.path_error[0] = error
+    env = Environment((4000.0, 4000.0), (EnvObject("p1", "particle", (1000.0, 2000.0), 90.0),), ())
+    ctx = RunContext(sim.config, ExecOptions(strategy="local-scan"), NoDrift((0.0, 0.0), 0.0), Belief(env, 0.0),
+                     References())
+    op = Operation(1, "p1", None, ((940.0, 2000.0), (3945.0, 2000.0)), Expect((4000.0, 2000.0), None))
+    return sim, ctx, op
+
+
+def test_a_3_um_push_that_one_stroke_loses_is_brought_in_by_legs():
+    sim, ctx, op = _one_particle_run(4.0)
+    push(sim, (1000 - 45 - 10 - 5, 2000), (4000 - 45 - 10, 2000))
+    (once,) = sim.truth()
+    assert math.dist(once.at, (4000.0, 2000.0)) > 1000.0            # dropped after some 550 nm
+    sim, ctx, op = _one_particle_run(4.0)
+    engine = RunEngine(sim, [])
+    verdict, legs, _ = engine.run(push_in_legs(ctx, op, ctx.belief["p1"], SEED_LEVER, 1.0, 10.0, 5.0))
+    (b,) = sim.truth()
+    assert not verdict.failed and legs >= 8
+    assert math.dist(b.at, (4000.0, 2000.0)) < 12.0
+    assert abs(b.at[1] - 2000.0) < 10.0                               # on its line all the way
