@@ -88,6 +88,15 @@ def one_run(args: tuple[str, int, float]) -> dict:
     }
 
 
+def code_version(folder: Path) -> str:
+    """The commit the benchmark ran at, marked when the tree had uncommitted changes."""
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], capture_output=True, text=True, cwd=folder).stdout.strip()
+
+    commit = git("rev-parse", "--short", "HEAD") or "unknown"
+    return commit + (" with uncommitted changes" if git("status", "--porcelain", "--untracked-files=no") else "")
+
+
 def parse_seeds(text: str) -> list[int]:
     out = []
     for part in text.split(","):
@@ -106,8 +115,7 @@ def _fmt(v, d=3):
 
 
 def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: float) -> str:
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                            cwd=Path(__file__).parent).stdout.strip() or "unknown"
+    commit = code_version(Path(__file__).parent)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
     lines = ["# Drift references: the estimate against the simulated truth", "",
              f"Command: `{shlex.join(['python', 'bench/bench_drift_refs.py', *argv])}`  ",
@@ -156,34 +164,49 @@ def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: fl
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--families", default=",".join(FAMILIES))
-    ap.add_argument("--seeds", default="1-10")
+    ap = sweep_args(__doc__, FAMILIES, "RESULTS_drift_refs.md")
     ap.add_argument("--jump-seeds", default="1-10", help="seeds of the drift-jump case ('' for none)")
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--out", default=str(Path(__file__).with_name("RESULTS_drift_refs.md")))
     a = ap.parse_args(argv)
     seeds = parse_seeds(a.seeds)
     cases = [(f, s, 0.0) for f in a.families.split(",") for s in seeds]
     jumps = [("allpushed", s, 300.0) for s in parse_seeds(a.jump_seeds)] if a.jump_seeds else []
-    t0 = time.perf_counter()
     todo = cases + jumps
-    done: dict[int, dict] = {}
-    with ProcessPoolExecutor(a.workers) as pool:
-        futures = {pool.submit(one_run, c): k for k, c in enumerate(todo)}
+    sweep_to_file(todo, one_run, a.workers, Path(a.out),
+                  lambda done, secs: report([done[k] for k in range(len(cases)) if k in done],
+                                            [done[k] for k in range(len(cases), len(todo)) if k in done],
+                                            argv, secs))
+    return 0
+
+
+def sweep_args(doc: str, families, out_name: str) -> argparse.ArgumentParser:
+    """The options every family sweep of this folder takes: families, seeds, workers and
+    the results file (beside the script)."""
+    ap = argparse.ArgumentParser(description=doc.splitlines()[0])
+    ap.add_argument("--families", default=",".join(families))
+    ap.add_argument("--seeds", default="1-10")
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", default=str(Path(__file__).with_name(out_name)))
+    return ap
+
+
+def sweep_to_file(todo: list, fn, workers: int, out: Path, render) -> None:
+    """Run ``fn`` on every case of ``todo`` in worker processes; after every finished run,
+    ``render(done: index -> row, seconds)`` is written to ``out`` (atomically; a long
+    sweep stopped loses nothing, and a partial file says how many of how many)."""
+    t0, done = time.perf_counter(), {}
+    text = ""
+    with ProcessPoolExecutor(workers) as pool:
+        futures = {pool.submit(fn, c): k for k, c in enumerate(todo)}
         for fut in as_completed(futures):
             done[futures[fut]] = fut.result()
-            # the figures so far, rewritten after every run: a long sweep stopped loses nothing
-            rows = [done[k] for k in range(len(cases)) if k in done]
-            jump_rows = [done[k] for k in range(len(cases), len(todo)) if k in done]
-            partial = "" if len(done) == len(todo) else f"\n(partial: {len(done)} of {len(todo)} runs)\n"
-            text = report(rows, jump_rows, argv, time.perf_counter() - t0) + partial
-            tmp = Path(a.out).with_suffix(".tmp")
+            text = render(done, time.perf_counter() - t0)
+            if len(done) < len(todo):
+                text += f"\n(partial: {len(done)} of {len(todo)} runs)\n"
+            tmp = out.with_suffix(".tmp")
             tmp.write_text(text)
-            tmp.replace(a.out)
+            tmp.replace(out)
             print(f"{len(done)}/{len(todo)} {todo[futures[fut]]}", flush=True)
     print(text)
-    return 0
 
 
 if __name__ == "__main__":

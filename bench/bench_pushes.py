@@ -1,0 +1,118 @@
+"""Pushes that stay on course, and a report that tells the truth: per push length, how far
+from its planned end each pushed object truly came to rest, and per family, whether the
+run's own verdict on its slots is what the simulated truth shows.
+
+Dry-runs (strategy ``full``) of the scene families over ten seeds each, every family at
+its own drift. For every push, the harness (which alone reads the truth) takes where the
+object truly is after it, against where the push was to leave it. Per family: the slots
+the truth fills (the largest matching of slots to compatible objects within tolerance,
+as an outside scorer counts), their RMS error, collateral moves (objects never pushed
+that moved more than the position tolerance), whether the run's verdict equals the
+truth, and the instrument time per filled slot.
+
+    python bench/bench_pushes.py                      # -> bench/RESULTS_pushes.md
+    python bench/bench_pushes.py --families allpushed --seeds 1-3 --out /tmp/x.md
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import os
+import platform
+import shlex
+import statistics
+import sys
+import time
+from pathlib import Path
+
+from bench_drift_refs import code_version, parse_seeds, sweep_args, sweep_to_file
+
+FAMILIES = ("sparse", "dense", "mixed", "allpushed", "device")
+BINS = ((0.0, 300.0, "< 300 nm"), (300.0, 1000.0, "300-1000 nm"), (1000.0, 2000.0, "1-2 µm"),
+        (2000.0, math.inf, "> 2 µm"))
+
+
+def one_run(args: tuple[str, int]) -> dict:
+    from nanoasm.dryrun import dry_run
+    from nanoasm.executor.strategy import ExecOptions
+    from nanoasm.world.families import family_case
+
+    name, seed = args
+    scene, layout = family_case(name, seed)
+    w0 = time.perf_counter()
+    out = dry_run(scene, layout, options=ExecOptions(strategy="full"))
+    rep = out.report
+    tol = layout.tolerance.position
+    pushed = set(rep.pushed) | {a.object for a in rep.assignment}
+    start = {b.id: b.at for b in rep.initial_objects}
+    collateral = [b.id for b in rep.final_objects if b.id in start and b.id not in pushed
+                  and math.dist(b.at, start[b.id]) > tol]
+    final = {b.id: b for b in rep.final_objects}
+    truth_err = [math.dist(layout.target(t).at, final[o].at) for t, o in
+                 ((a.target, a.object) for a in rep.assignment) if t in out.truly_filled and o in final]
+    filled = len(out.truly_filled)
+    return {"family": name, "seed": seed, "slots": len(layout.targets), "filled": filled,
+            "verdict": len(out.verdict_filled), "agrees": not out.disagreements,
+            "rms": math.sqrt(sum(e * e for e in truth_err) / len(truth_err)) if truth_err else math.nan,
+            "collateral": len(collateral), "instrument_s": rep.instrument_time.total,
+            "after_scan_s": rep.instrument_time.total - rep.instrument_time.full_scan,
+            "pushes": [(p.planned, p.off) for p in out.pushes], "strokes": rep.counts.pushes,
+            "wall_s": time.perf_counter() - w0}
+
+
+def _fmt(v, d=3) -> str:
+    if isinstance(v, float) and math.isnan(v):
+        return "-"
+    return f"{v:.{d}g}" if isinstance(v, float) else str(v)
+
+
+def report(rows: list[dict], argv: list[str], seconds: float) -> str:
+    commit = code_version(Path(__file__).parent)
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
+    lines = ["# Pushes that stay on course, and a verdict that tells the truth", "",
+             f"Command: `{shlex.join(['python', 'bench/bench_pushes.py', *argv])}`  ",
+             f"Date: {datetime.date.today()}; code: {commit}; {len(rows)} dry-runs in {seconds / 60:.1f} min on "
+             f"{os.cpu_count()} cores ({platform.machine()}, Python {platform.python_version()}, load {load:.1f}).",
+             "", "Strategy `full`. Off course: how far from the push's planned end the object truly came to "
+             "rest (a push of a particle goes in legs; this is the whole push).", "",
+             "## Pushes by planned length (every family)", "",
+             "| length | pushes | median off nm | > 50 nm off | > 100 nm off |", "| --- | ---: | ---: | ---: | ---: |"]
+    every = [p for r in rows for p in r["pushes"]]
+    for lo, hi, name in BINS:
+        offs = [off for planned, off in every if lo <= planned < hi]
+        if offs:
+            lines.append(f"| {name} | {len(offs)} | {statistics.median(offs):.1f} "
+                         f"| {100 * sum(o > 50 for o in offs) / len(offs):.1f} % "
+                         f"| {100 * sum(o > 100 for o in offs) / len(offs):.1f} % |")
+    lines += ["", "## Per family (sums over seeds; RMS and time per slot: medians)", "",
+              "| family | runs | slots filled (truth) | verdict = truth | RMS nm | collateral moves | strokes "
+              "| s per filled slot after the full scan |",
+              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for fam in dict.fromkeys(r["family"] for r in rows):
+        rs = [r for r in rows if r["family"] == fam]
+        per = [r["after_scan_s"] / r["filled"] for r in rs if r["filled"]]
+        rms = [r["rms"] for r in rs if not math.isnan(r["rms"])]
+        lines.append(f"| {fam} | {len(rs)} | {sum(r['filled'] for r in rs)}/{sum(r['slots'] for r in rs)} "
+                     f"| {sum(r['agrees'] for r in rs)}/{len(rs)} | {_fmt(statistics.median(rms) if rms else math.nan)} "
+                     f"| {sum(r['collateral'] for r in rs)} | {sum(r['strokes'] for r in rs)} "
+                     f"| {_fmt(statistics.median(per) if per else math.nan)} |")
+    lines += ["", "## Every run", "", "| family | seed | filled (truth) | verdict | agrees | RMS nm | collateral "
+              "| instrument s | wall s |", "| --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: |"]
+    lines += [f"| {r['family']} | {r['seed']} | {r['filled']}/{r['slots']} | {r['verdict']} | "
+              f"{'yes' if r['agrees'] else 'NO'} | {_fmt(r['rms'])} | {r['collateral']} | "
+              f"{_fmt(r['instrument_s'], 4)} | {_fmt(r['wall_s'])} |" for r in rows]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    a = sweep_args(__doc__, FAMILIES, "RESULTS_pushes.md").parse_args(argv)
+    todo = [(f, s) for f in a.families.split(",") for s in parse_seeds(a.seeds)]
+    sweep_to_file(todo, one_run, a.workers, Path(a.out),
+                  lambda done, secs: report([done[k] for k in range(len(todo)) if k in done], argv, secs))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
