@@ -515,7 +515,7 @@ def _print_summary(layout, outcome) -> None:
 @app.command("sweep")
 def sweep_cmd(
     families: Annotated[str, typer.Option(help="Scene families, comma-separated: tiny, sparse, dense, rods, "
-                                               "mixed, device, allpushed, rodgap, or all.")] = "sparse,dense,rods,mixed",
+                                               "mixed, device, allpushed, rodgap, wide, or all.")] = "sparse,dense,rods,mixed",
     seeds: Annotated[str, typer.Option(help="Seeds: numbers and ranges, e.g. 1-5 or 1,4,9.")] = "1-3",
     strategies: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full, anchor "
                                                  "(comma-separated), or all.")] = "full",

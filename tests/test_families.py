@@ -9,13 +9,16 @@ import math
 import tomllib
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import shapely
+from scipy.optimize import linear_sum_assignment
 
 from nanoasm.cad.layout import layout_from_dict, size_ok
 from nanoasm.fileio import dumps_toml
 from nanoasm.world.families import (
     DEFAULT_DRIFT,
+    DENSE_DRIFT,
     FAMILIES,
     MAX_ACCELERATION,
     SLOT_CLEARANCE,
@@ -25,8 +28,9 @@ from nanoasm.world.families import (
 from nanoasm.world.params import CreepParams, DriftChangeParams
 from nanoasm.world.scene import scene_from_dict
 
-NEW = ("device", "allpushed", "rodgap")
+NEW = ("device", "allpushed", "rodgap", "wide")
 OLD = tuple(n for n in FAMILIES if n not in NEW)
+PADS = tuple(n for n in NEW if family(n).electrodes)
 
 
 @pytest.mark.parametrize("name", list(FAMILIES))
@@ -47,7 +51,7 @@ def test_every_family_is_valid_feasible_and_deterministic(name):
     for o in scene.objects:
         for t in layout.targets:
             gap = shapely.distance(o.geometry(), t.geometry()) - o.radius - t.radius
-            assert gap >= SLOT_CLEARANCE - 1e-6
+            assert gap >= max(SLOT_CLEARANCE, family(name).clearance) - 1e-6
     # the electrodes are obstacles of the scene and keep-outs of the layout
     assert [ob.polygon for ob in scene.obstacles] == [k.polygon for k in layout.keepouts]
     assert bool(scene.obstacles) == bool(family(name).electrodes)
@@ -129,8 +133,11 @@ def test_drift_direction_follows_the_seed_and_speed_the_argument():
 
 
 def test_default_drift_speeds():
+    assert DEFAULT_DRIFT == 0.3 and DENSE_DRIFT == 0.6
     for name in OLD:
-        assert math.hypot(*family_case(name, 2)[0].drift.velocity) == pytest.approx(DEFAULT_DRIFT, abs=1e-5)
+        speed = DENSE_DRIFT if name == "dense" else DEFAULT_DRIFT
+        for seed in (1, 2):
+            assert math.hypot(*family_case(name, seed)[0].drift.velocity) == pytest.approx(speed, abs=1e-5)
     for name in NEW:
         speeds = [math.hypot(*family_case(name, seed)[0].drift.velocity) for seed in range(8)]
         assert all(0.15 - 1e-5 <= v <= 0.6 + 1e-5 for v in speeds)
@@ -216,6 +223,51 @@ def test_rodgap(seed):
             assert shapely.distance(s.geometry(), t.geometry()) - s.radius - t.radius >= 2 * 40.0 + 20.0
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3, 4, 5])
+def test_wide(seed):
+    """A 12 µm area, 20-60 particles, a compact 4 x 3 grid of slots in its centre and no
+    particle within 2 µm of it: whichever particles fill the slots are pushed 2-8 µm."""
+    scene, layout = family_case("wide", seed)
+    again = family_case("wide", seed)
+    assert (scene.to_dict(), layout.to_dict()) == (again[0].to_dict(), again[1].to_dict())
+    assert 10000.0 <= scene.area[0] == scene.area[1] <= 20000.0 and not scene.obstacles
+    particles = scene.objects
+    assert 20 <= len(particles) <= 60
+    assert all(o.kind == "particle" and 80 <= o.diameter <= 100 for o in particles)
+    slots = layout.targets
+    assert 8 <= len(slots) <= 16 and all((t.kind, t.diameter) == ("particle", 90.0) for t in slots)
+    xs, ys = sorted({t.at[0] for t in slots}), sorted({t.at[1] for t in slots})
+    assert len(xs) * len(ys) == len(slots) and max(xs) - min(xs) <= 1000 and max(ys) - min(ys) <= 1000
+    assert (min(xs) + max(xs)) / 2 == pytest.approx(scene.area[0] / 2)
+    assert all(size_ok(t, o, layout.tolerance) for o in particles for t in slots)
+    # every particle at least 2 µm clear of every slot, and the assignment of least total
+    # travel pushes each of its particles 2-8 µm (and any other is 2-8 µm from its slot)
+    dist = np.array([[math.dist(t.at, o.at) for o in particles] for t in slots])
+    for t in slots:
+        for o in particles:
+            assert shapely.distance(o.geometry(), t.geometry()) - o.radius - t.radius >= 2000.0 - 1e-6
+    rows, cols = linear_sum_assignment(dist)
+    assert 2000.0 <= dist[rows, cols].min() and dist[rows, cols].max() <= 8000.0
+    assert 2000.0 <= np.median(dist.min(axis=1)) <= 8000.0
+    # no two objects overlap (at least the scene's gap between footprints)
+    for i, o in enumerate(particles):
+        for p in particles[i + 1:]:
+            assert shapely.distance(o.geometry(), p.geometry()) - o.radius - p.radius > 0.0
+
+
+def test_wide_draws_its_particle_count_from_the_seed():
+    counts = {len(family_case("wide", seed)[0].objects) for seed in range(1, 9)}
+    assert len(counts) > 3 and all(20 <= n <= 60 for n in counts)
+
+
+def test_dense_drifts_at_0_6_nm_per_s_and_keeps_its_objects():
+    fast, layout = family_case("dense", 1)
+    slow = family_case("dense", 1, drift=0.3)
+    assert math.hypot(*fast.drift.velocity) == pytest.approx(0.6, abs=1e-5)
+    assert fast.objects == slow[0].objects and layout == slow[1]
+    assert fast.drift.velocity == pytest.approx(tuple(2 * v for v in slow[0].drift.velocity), abs=1e-5)
+
+
 @pytest.mark.parametrize("name", NEW)
 @pytest.mark.parametrize("seed", [1, 2, 3, 4, 5])
 def test_the_newer_families_keep_their_objects_off_the_area_edge_by_a_full_scans_drift(name, seed):
@@ -228,7 +280,7 @@ def test_the_newer_families_keep_their_objects_off_the_area_edge_by_a_full_scans
         assert min(x0, y0, scene.area[0] - x1, scene.area[1] - y1) >= fam.border - 1e-9, o.id
 
 
-@pytest.mark.parametrize("name", NEW)
+@pytest.mark.parametrize("name", PADS)
 def test_a_full_scan_finds_the_electrodes_and_the_wire(name):
     from nanoasm.world.identify import identify
     from nanoasm.world.sim import SimulatedAFM

@@ -19,6 +19,8 @@ allpushed   6000      exactly 9 particles, 2 electrodes      9 particles, a 3 x 
                       (1600 nm gap)                          150 nm pitch in the gap
 rodgap      10000     exactly 3 rods, 2 electrodes           3 parallel 1300 x 100 rods,
                       (2400 nm gap)                          400 nm apart, in the gap
+wide        16000     20-60 particles (the count drawn from  12 particles, a 4 x 3 grid of
+                      the seed), none within 2 µm of a slot  300 nm pitch in the centre
 ==========  ========  =====================================  ================================
 
 Particles are 80-100 nm and particle slots 90 nm, rods 500-700 nm long and 60-80 nm
@@ -28,17 +30,20 @@ tolerance (25 % in size). The electrodes are obstacles (30 nm high) in the scene
 keep-outs in the layout, their gap centred in the area. The wire of ``device`` (2700 x 90
 nm, L/d = 30: the simulator bends it, identification calls it a wire, an obstacle to
 planning) lies above or below the electrodes, far from the slots: it is to be left
-alone. No object starts within 100 nm of a slot, and every kind of slot has at least one
-spare object that fits it, but in ``allpushed`` and ``rodgap``, where objects and slots
-are as many and every object must move (else the scene is drawn again from a seed
-derived from the family's; the counts of the first five are before the objects near
-slots and electrodes are taken out). In the last three every object also keeps clear
-of the area's edge by the drift of a whole full scan (``border``: 450-700 nm), so none
-that the layout needs is cut by the image border.
+alone. No object starts within 100 nm of a slot (``wide``: 2 µm; its area is fixed at 16
+µm and its particles spread uniformly over it, so the assignment of least total travel
+pushes each 2-8 µm: 2.1-6.2 µm over seeds 1-60, median 3.5), and every kind of slot has
+at least one spare object that fits it, but in ``allpushed`` and ``rodgap``, where
+objects and slots are as many and every object must move (else the scene is drawn again
+from a seed derived from the family's; the counts of the first five are before the
+objects near slots and electrodes are taken out). In the last four every object also
+keeps clear of the area's edge by the drift of a whole full scan (``border``: 450-1200
+nm), so none that the layout needs is cut by the image border.
 
 Drift: a steady velocity of ``drift`` nm/s in a direction drawn from the seed, plus the
-world's default random walk; unless given, 0.3 nm/s for the first five families and a
-speed drawn from the seed in 0.15-0.6 nm/s for the last three.
+world's default random walk; unless given, 0.3 nm/s for the first five families but
+``dense`` (0.6 nm/s: a crowded scene at the fastest drift of the newer ones) and a speed
+drawn from the seed in 0.15-0.6 nm/s for the last four.
 
 The truth is not the executor's model: from the seed (its own generator, so the objects
 do not depend on it) every family draws the creep amplitude and tau, each uniformly
@@ -69,8 +74,10 @@ from .scene import Obstacle, Scene, scene_from_dict
 
 #: Least clearance between a slot and any object of the generated scene, nm.
 SLOT_CLEARANCE = 100.0
-#: Steady drift speed of the first five families unless given, nm/s.
+#: Steady drift speed of the first five families unless given (but ``dense``), nm/s.
 DEFAULT_DRIFT = 0.3
+#: Steady drift speed of ``dense`` unless given, nm/s.
+DENSE_DRIFT = 0.6
 #: Scenes drawn (from seeds derived from the family's) until one has the objects its
 #: family asks for (see :class:`Family`).
 ATTEMPTS = 20
@@ -79,7 +86,7 @@ CREEP_SPREAD = 0.3
 #: Largest drift acceleration drawn, nm/s²: the drift velocity changes by up to 0.05 nm/s
 #: in 10 min.
 MAX_ACCELERATION = 0.05 / 600
-#: Range of the drift speed drawn from the seed for device, allpushed and rodgap, nm/s.
+#: Range of the drift speed drawn from the seed for device, allpushed, rodgap and wide, nm/s.
 NEW_SPEEDS = (0.15, 0.6)
 
 
@@ -89,10 +96,12 @@ class Family:
 
     ``particles`` and ``rods`` are the counts drawn; those near a slot, a pad or the wire
     are taken out. ``keep`` then keeps exactly so many particles and rods (the first
-    clear ones as drawn), else every clear object is kept. With ``spare`` each kind of
-    slot has more objects that fit it than slots, else at least as many. ``electrodes``
-    is the pads' gap and height (nm); ``speeds`` the range of the drift speed drawn when
-    :func:`family_case` is given none.
+    clear ones as drawn), else every clear object is kept; ``kept_particles`` instead
+    draws from the seed how many particles to keep (uniform integer in the range, no
+    rods). With ``spare`` each kind of slot has more objects that fit it than slots, else
+    at least as many. ``electrodes`` is the pads' gap and height (nm); ``speeds`` the
+    range of the drift speed drawn when :func:`family_case` is given none; ``clearance``
+    the least gap (nm) between a slot and an object.
     """
 
     name: str
@@ -109,6 +118,8 @@ class Family:
     #: Least distance (nm) from an object to the area's edge: the drift of a whole full
     #: scan, so that no object the layout needs is cut by the image border.
     border: float = 0.0
+    clearance: float = SLOT_CLEARANCE
+    kept_particles: tuple[int, int] | None = None
 
     def slots(self) -> tuple[Body, ...]:
         return self.layout(self.side / 2)
@@ -120,7 +131,7 @@ class Family:
 FAMILIES: dict[str, Family] = {f.name: f for f in (
     Family("tiny", 1500.0, 5, fs.tiny),
     Family("sparse", 4000.0, 12, fs.ring(4)),
-    Family("dense", 4000.0, 70, fs.ring(6)),
+    Family("dense", 4000.0, 70, fs.ring(6), speeds=(DENSE_DRIFT, DENSE_DRIFT)),
     Family("rods", 4000.0, 10, fs.rod_between, rods=4),
     Family("mixed", 5000.0, 24, fs.bowtie, rods=3, electrodes=(1200.0, 600.0)),
     Family("device", 8000.0, 30, fs.device, rods=8, electrodes=(1400.0, 2000.0), keep=(12, 2),
@@ -129,6 +140,8 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
            speeds=NEW_SPEEDS, border=450.0),
     Family("rodgap", 10000.0, 0, fs.rod_row, rods=8, electrodes=(2400.0, 2000.0), keep=(0, 3),
            spare=False, rod_size=((1200.0, 1400.0), (90.0, 110.0)), speeds=NEW_SPEEDS, border=700.0),
+    Family("wide", 16000.0, 130, fs.grid4x3, speeds=NEW_SPEEDS, border=1200.0, clearance=2000.0,
+           kept_particles=(20, 60)),
 )}
 
 
@@ -185,7 +198,7 @@ def _truth(fam: Family, seed: int) -> tuple[CreepParams, DriftChangeParams, floa
 
 def family_case(name: str, seed: int, drift: float | None = None) -> tuple[Scene, Layout]:
     """The scene and layout of family ``name`` for ``seed`` with ``drift`` nm/s of drift
-    (None: the family's own, :data:`DEFAULT_DRIFT` or drawn from the seed).
+    (None: the family's own, :data:`DEFAULT_DRIFT`, :data:`DENSE_DRIFT` or drawn from the seed).
 
     Raises
     ------
@@ -198,6 +211,10 @@ def family_case(name: str, seed: int, drift: float | None = None) -> tuple[Scene
     if drift is not None and not (math.isfinite(drift) and drift >= 0):
         raise ValueError(f"drift must be finite and >= 0 nm/s, got {drift!r}")
     creep, change, speed = _truth(fam, seed)
+    keep = fam.keep
+    if fam.kept_particles is not None:   # its own generator: no other draw shifts
+        lo, hi = fam.kept_particles
+        keep = (int(np.random.default_rng([seed, 17]).integers(lo, hi + 1)), 0)
     drift = speed if drift is None else drift
     direction = np.random.default_rng([seed, 7]).uniform(0.0, 2.0 * math.pi)
     velocity = (round(drift * math.cos(direction), 6), round(drift * math.sin(direction), 6))
@@ -212,13 +229,13 @@ def family_case(name: str, seed: int, drift: float | None = None) -> tuple[Scene
     inner = shapely.box(fam.border, fam.border, fam.side - fam.border, fam.side - fam.border)
 
     def clear(o: Body) -> bool:
-        return (_clear_of(o, slots, SLOT_CLEARANCE) and _clear_of(o, wires, spec.gap)
+        return (_clear_of(o, slots, fam.clearance) and _clear_of(o, wires, spec.gap)
                 and (pads is None or shapely.distance(o.geometry(), pads) >= o.radius + spec.gap)
                 and (fam.border == 0.0 or inner.contains(o.geometry().buffer(o.radius))))
 
     for attempt in range(ATTEMPTS):
         base = random_scene(spec, seed + 1_000_003 * attempt)
-        kept = _kept(tuple(filter(clear, base.objects)), fam.keep)
+        kept = _kept(tuple(filter(clear, base.objects)), keep)
         if kept is not None and _enough(kept, slots, int(fam.spare)):
             break
     else:  # pragma: no cover - the families leave plenty of room

@@ -76,10 +76,20 @@ def device(c: float) -> tuple[Body, ...]:
             *(_particle(i + 5, x, c - dy) for i, x in enumerate(xs)))
 
 
-def grid3(c: float) -> tuple[Body, ...]:
-    """Nine particle slots in a 3 x 3 grid of 150 nm pitch."""
-    return tuple(_particle(3 * j + i + 1, c + 150 * (i - 1), c + 150 * (j - 1))
-                 for j in range(3) for i in range(3))
+def grid(nx: int, ny: int, pitch: float) -> Slots:
+    """``nx`` x ``ny`` particle slots in a grid of ``pitch`` nm centred on the area's
+    centre, numbered along x first."""
+    def slots(c: float) -> tuple[Body, ...]:
+        return tuple(_particle(nx * j + i + 1, c + pitch * (i - (nx - 1) / 2), c + pitch * (j - (ny - 1) / 2))
+                     for j in range(ny) for i in range(nx))
+    return slots
+
+
+#: ``allpushed``: nine particle slots in a 3 x 3 grid of 150 nm pitch.
+grid3 = grid(3, 3, 150.0)
+#: ``wide``: twelve particle slots in a 4 x 3 grid of 300 nm pitch (210 nm clear between
+#: neighbours: room for the tip to pass).
+grid4x3 = grid(4, 3, 300.0)
 
 
 def rod_row(c: float) -> tuple[Body, ...]:
