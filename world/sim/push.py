@@ -22,14 +22,6 @@ Motion per step (tip from ``p0`` to ``p1``, sample frame, nm):
   rises by the lever's stiffness (``lateral_gain / C1``) times the piezo's overshoot until
   its vertical part lifts the tip over the object.
 
-Force on the tip (what the lever reports, not what moves the object): the object pushes
-back along the contact normal (no tip–object friction, F^f_ot = 0 as in eq. 4.4), from the
-contact point towards the tip's axis: from a particle's centre to the tip, from a rod's or
-a wire's axis to the tip, as the contact stands after the step; its horizontal part is the
-transmitted force ``(F^r_to − F^a_to) cos θ`` of eq. 4.4. The tip–substrate friction
-μts(F_z − F̄z) (eq. 4.4: the load the object's lift leaves on the substrate) acts against
-the tip's motion. A push centred on the motion puts the whole of eq. 4.4 against it.
-
 What an object shoves moves through :class:`~nanoasm.world.sim.contacts.SimContacts`;
 when a push ends, each moved object that ends near another gets the random van der Waals
 error of ``[vdw]`` (seed 3.6.1), once. Forces in nN.
@@ -82,7 +74,6 @@ class Episode:
     faults: PushFaults
     theta: float = 0.0        # θ = θx + γ, deg
     f_push: float = 0.0       # lateral force while it moves, nN (particles and wires)
-    friction: float = 0.0     # the tip-substrate friction part of f_push, nN
     branch: int = 1
     travelled: float = 0.0    # nm the tip moved while pushing
     moved: set[int] = field(default_factory=set)
@@ -97,15 +88,13 @@ class PushPhysics(PushWorld):
              lifting: bool = False, lag: tuple[float, float] = (0.0, 0.0)):
         """The tip moves from ``p0`` to ``p1`` in contact with normal force ``f_z`` (nN).
 
-        ``objs`` are the objects near the tip. Returns ``(pushing, contact, friction,
-        ride)``: whether an object resists the tip, the objects' force on the tip
-        ``(fx, fy)`` (nN, sample frame, along their contact normals), the tip–substrate
-        friction while pushing (nN, against the tip's motion) and the height (nm) the
-        apex rides over an object. A tip that is ``lifting`` (unloading) or does not move
-        pushes nothing. ``lag`` (nm) is the part of the tip's offset from the piezo that
-        the lateral force causes.
+        ``objs`` are the objects near the tip. Returns ``(pushing, f_lat, ride)``:
+        whether an object resists the tip, the lateral force it puts on the tip (nN,
+        against the motion) and the height (nm) the apex rides over an object. A tip
+        that is ``lifting`` (unloading) or does not move pushes nothing. ``lag`` (nm) is
+        the part of the tip's offset from the piezo that the lateral force causes.
         """
-        pushing, fx, fy, friction, ride = False, 0.0, 0.0, 0.0, 0.0
+        pushing, f_lat, ride = False, 0.0, 0.0
         self.lag = lag
         self.steps += 1
         if lifting or math.hypot(p1[0] - p0[0], p1[1] - p0[1]) < STILL:
@@ -113,18 +102,13 @@ class PushPhysics(PushWorld):
                 ep = self.episodes.get(int(o))
                 if ep is not None and ep.mode == RIDE:
                     ride = max(ride, self.ride_height(int(o), p1))
-            return pushing, (fx, fy), friction, ride
+            return pushing, f_lat, ride
         for o in objs:
             p, f, h = self._step_object(int(o), p0, p1, f_z, theta)
-            if p:
-                share = min(self.episodes[int(o)].friction, f)
-                (nx, ny), _ = self.normal(int(o), p1)       # from the tip to the object's core
-                fx -= (f - share) * nx
-                fy -= (f - share) * ny
-                friction += share
             pushing |= p
+            f_lat += f
             ride = max(ride, h)
-        return pushing, (fx, fy), friction, ride
+        return pushing, f_lat, ride
 
     def end_all(self) -> None:
         """End every push in progress (the tip lifted or left)."""
@@ -179,15 +163,9 @@ class PushPhysics(PushWorld):
                 ep.mode = RIDE
                 self.slips += 1
             else:
-                ep.f_push, ep.friction = self._lateral(theta, o, f_os, f_z)
+                ep.f_push = float(push_lateral_force(theta, t.mu_os[o], t.nu[o], f_os, self.f_ts,
+                                                     f_z, self.mu_ts))
         return ep
-
-    def _lateral(self, theta: float, o: int, f_os: float, f_z: float, rho: float = 1.0):
-        """``(F_l, friction)`` nN: eq. 4.4's lateral force and its tip–substrate friction part."""
-        t = self.table
-        f = [float(push_lateral_force(theta, t.mu_os[o], t.nu[o], f_os, self.f_ts, f_z, mu, rho))
-             for mu in (self.mu_ts, 0.0)]
-        return f[0], f[0] - f[1]
 
     def _affect(self, b) -> float:
         """Radius (nm) of the region of wire ``b`` a push bends."""
@@ -288,7 +266,8 @@ class PushPhysics(PushWorld):
             ep.mode = RIDE
             self.slips += 1
             return False, 0.0, self.ride_height(o, p1)
-        f_lat, ep.friction = self._lateral(ep.theta, o, t.f_os_a[o], f_z, float(rho(motion.l, L)))
+        f_lat = float(push_lateral_force(ep.theta, t.mu_os[o], t.nu[o], t.f_os_a[o], self.f_ts, f_z,
+                                         self.mu_ts, float(rho(motion.l, L))))
         ep.f_push = f_lat
         if self.hits_obstacle(motion.body):
             return self._blocked(o, ep, p1, f_lat, f_z)

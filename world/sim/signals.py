@@ -2,10 +2,8 @@
 
 Forces (nN, AFM frame) on the tip: the lever's normal load ``k × deflection`` (the tip
 pressed ``-z`` into a hard surface, plus any height it rides over an object) and a
-lateral force: tip–substrate friction μts(F_z + F^a_ts) against the tip's motion, and
-while pushing the object's force along the contact normal plus the friction eq. 4.4
-leaves (:mod:`~nanoasm.world.sim.push`), a vector per sample, so that an object off the
-tip's line shows in both signals. They reach the detector as the seed describes (ch. 3):
+lateral force against the tip's motion (tip–substrate friction μts(F_z + F^a_ts), or the
+push of eq. 4.4). They reach the detector as the seed describes (ch. 3):
 
 - the cantilever frame by R(ψ) (eq. 3.7), then S̄_n, S̄_l by
   :func:`~nanoasm.world.cantilever.signals_from_force` (eq. 3.5, 3.6, 3.9, saturating);
@@ -74,16 +72,10 @@ class SignalModel:
         return np.stack([sn_bar, sl_bar], axis=-1) @ self.offset_matrix.T
 
     def bar_signals(self, f_lat: np.ndarray, motion: np.ndarray, deflection: np.ndarray):
-        """Compensated signals ``(S̄_n, S̄_l)`` (V) for lateral forces ``f_lat`` and deflections
-        (nm). ``f_lat`` is either ``(n, 2)``, the lateral force on the tip (nN, AFM frame;
-        ``motion`` is then not used), or ``(n,)``, sizes (nN) of forces against the unit
-        ``motion`` ``(n, 2)`` (zero rows when still)."""
-        f_lat = np.asarray(f_lat, float)
-        if f_lat.ndim == 2:
-            fx, fy = f_lat[:, 0], f_lat[:, 1]
-        else:
-            fx, fy = -f_lat * motion[:, 0], -f_lat * motion[:, 1]
-        f = np.stack([fx, fy, self.lever.spring_constant * deflection], axis=-1)
+        """Compensated signals ``(S̄_n, S̄_l)`` (V) for lateral forces ``f_lat`` (nN, against
+        the unit ``motion`` ``(n, 2)``, zero rows when still) and deflections (nm)."""
+        f = np.stack([-f_lat * motion[:, 0], -f_lat * motion[:, 1],
+                      self.lever.spring_constant * deflection], axis=-1)
         return signals_from_force(to_cantilever(f, self.psi), self.lever)
 
     def baselines(self, x: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -13,11 +13,6 @@ The tip, in the sample frame, is at ``piezo + deflection offset - drift offset``
 deflection is ``max(0, H - z)`` with H the apex height of the surface under it (0 on the
 substrate, plateaus over obstacles, an object's profile when a lifted tip grazes it or
 the tip rides over one).
-
-The lateral force on the tip is a vector per sample (nN, AFM frame): tip–substrate
-friction against the piezo's motion, and while pushing the object's force along its
-contact normal (:meth:`~nanoasm.world.sim.push.PushPhysics.step`), so an object off the
-tip's line shows in S_l and S_n on the side where it sits.
 """
 
 from __future__ import annotations
@@ -34,9 +29,7 @@ from .signals import SignalModel, twist_deg
 
 @dataclass
 class TipState:
-    """The tip at the last sample played: piezo XY (scanner), tip XY (sample frame), Z, S̄_l,
-    ride, the lateral force ``f_lat`` (nN, AFM frame) and, when that force was friction
-    against the motion, its size ``f_along`` (None while pushing)."""
+    """The tip at the last sample played: piezo XY (scanner), tip XY (sample frame), Z, S̄_l, ride."""
 
     piezo: np.ndarray
     tip: tuple[float, float]
@@ -44,14 +37,12 @@ class TipState:
     sl_bar: float = 0.0
     ride: float = 0.0
     motion: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    f_lat: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    f_along: float | None = 0.0
+    f_lat: float = 0.0
 
 
 @dataclass(frozen=True, eq=False)
 class Played:
-    """Per sample: deflection (nm), lateral force on the tip ``(n, 2)`` (nN, AFM frame), unit
-    motion ``(n, 2)``, tip ``(n, 2)``."""
+    """Per sample: deflection (nm), lateral force (nN), unit motion ``(n, 2)``, tip ``(n, 2)``."""
 
     deflection: np.ndarray
     f_lat: np.ndarray
@@ -74,8 +65,7 @@ def play_chunk(world: PushPhysics, model: SignalModel, nm: np.ndarray, off: np.n
     sn, sl = model.bar_signals(f_fric, motion, np.maximum(-z, 0.0))
     tip = piezo + model.tip_offset(sn, sl) - off
     h_obs = world.obstacle_heights(tip[:, 0], tip[:, 1])
-    f_lat = -f_fric[:, None] * motion
-    along = f_fric.copy()
+    f_lat = f_fric.copy()
     defl = np.maximum(h_obs - z, 0.0)
     n, i, version = len(z), 0, None
     margin = max_step + world.release + 2.0 * model.lever.c2 * world.max_height / model.lever.normal_gain + 1.0
@@ -89,7 +79,7 @@ def play_chunk(world: PushPhysics, model: SignalModel, nm: np.ndarray, off: np.n
             j += 1
         if s:
             _slow_run(world, model, piezo, z, off, ds, motion, f_fric, h_obs, state, i, j, margin,
-                      defl, f_lat, along, tip)
+                      defl, f_lat, tip)
         else:
             if world.episodes:
                 world.end_all()
@@ -102,8 +92,7 @@ def play_chunk(world: PushPhysics, model: SignalModel, nm: np.ndarray, off: np.n
     state.piezo = piezo[-1].copy()
     state.z = float(z[-1])
     state.motion = motion[-1].copy()
-    state.f_lat = f_lat[-1].copy()
-    state.f_along = None if math.isnan(along[-1]) else float(along[-1])
+    state.f_lat = float(f_lat[-1])
     return Played(defl, f_lat, motion, tip)
 
 
@@ -147,12 +136,8 @@ def _classify(world: PushPhysics, tip: np.ndarray, z: np.ndarray, contact: np.nd
 
 
 def _slow_run(world: PushPhysics, model: SignalModel, piezo, z, off, ds, motion, f_fric, h_obs,
-              state: TipState, i: int, j: int, margin: float, defl, f_lat, along, tip) -> None:
-    """Samples ``i:j`` one by one through the pushing physics (results written in place).
-
-    ``along[q]`` is the size of a lateral force that is friction against the motion
-    (NaN while an object pushes): S̄_l is computed from it as it always was, so samples
-    that push nothing give the signals they gave before contact normals were modelled."""
+              state: TipState, i: int, j: int, margin: float, defl, f_lat, tip) -> None:
+    """Samples ``i:j`` one by one through the pushing physics (results written in place)."""
     lever = model.lever
     (m00, m01), (m10, m11) = model.offset_matrix
     r10, r11 = _rotation_row(model.psi)
@@ -161,31 +146,24 @@ def _slow_run(world: PushPhysics, model: SignalModel, piezo, z, off, ds, motion,
     cands = world.candidates(lo, hi, world.tip_radius + margin)
     p0, sl, ride = state.tip, state.sl_bar, state.ride
     z_prev = z[i - 1] if i > 0 else state.z
-    if i > 0:
-        held, held_along = f_lat[i - 1].copy(), along[i - 1]
-    else:
-        held, held_along = state.f_lat.copy(), math.nan if state.f_along is None else state.f_along
+    held = f_lat[i - 1] if i > 0 else state.f_lat
     for q in range(i, j):
         sn = (max(ride, h_obs[q]) - z[q]) / kn
         p1 = (piezo[q, 0] + m00 * sn + m01 * sl - off[q, 0], piezo[q, 1] + m10 * sn + m11 * sl - off[q, 1])
         theta = world.half_angle + twist_deg(sl, lever)
         lifting = z[q] > z_prev
-        pushing, (cx, cy), fric, h = world.step(cands, p0, p1, k * -z[q], theta, lifting=lifting,
-                                                lag=(m01 * sl, m11 * sl))
+        pushing, f, h = world.step(cands, p0, p1, k * -z[q], theta, lifting=lifting,
+                                   lag=(m01 * sl, m11 * sl))
         z_prev = z[q]
         defl[q] = max(max(h, h_obs[q]) - z[q], 0.0)
         if pushing:
-            f_lat[q] = (cx - fric * motion[q, 0], cy - fric * motion[q, 1])
-            along[q] = math.nan
+            f_lat[q] = f
         elif ds[q] == 0.0 and not lifting:      # between DAC codes: the lever stays twisted
-            f_lat[q], along[q] = held, held_along
+            f_lat[q] = held
         else:
-            f_lat[q], along[q] = -f_fric[q] * motion[q], f_fric[q]
-        held, held_along = f_lat[q].copy(), along[q]
-        if math.isnan(along[q]):
-            sl = (r10 * f_lat[q, 0] + r11 * f_lat[q, 1]) / lg
-        else:
-            sl = -along[q] * (r10 * motion[q, 0] + r11 * motion[q, 1]) / lg
+            f_lat[q] = f_fric[q]
+        held = f_lat[q]
+        sl = -f_lat[q] * (r10 * motion[q, 0] + r11 * motion[q, 1]) / lg
         ride = h
         tip[q] = p1
         p0 = p1
