@@ -2,8 +2,8 @@
 family by family, over ten seeds each.
 
 Dry-runs (strategy ``full``) of the scene families of :mod:`nanoasm.world.families`,
-each at its own drift (the first five at 0.3 nm/s, ``device``, ``allpushed`` and
-``rodgap`` at a speed drawn per seed in 0.15-0.6 nm/s; every world's creep and drift
+each at its own drift (sparse, rods and mixed at 0.3 nm/s, dense at 0.6 nm/s; ``device``,
+``allpushed``, ``rodgap`` and ``wide`` at a speed drawn per seed in 0.15-0.6 nm/s; every world's creep and drift
 acceleration drawn about the filter's nominal values). Per run, from the drift
 estimates the run sent and the simulated truth at the same times (the harness reads
 the truth; the executor never does):
@@ -38,7 +38,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import replace
 from pathlib import Path
 
-FAMILIES = ("sparse", "dense", "rods", "mixed", "device", "allpushed", "rodgap")
+FAMILIES = ("sparse", "dense", "rods", "mixed", "device", "allpushed", "rodgap", "wide")
 #: 2-dof χ² of probability 0.9973 (the 3σ of one dimension).
 CHI2_3SIGMA = 11.829
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from bench_drift_refs import code_version, parse_seeds, sweep_args, sweep_to_file
 
-FAMILIES = ("sparse", "dense", "mixed", "allpushed", "device")
+FAMILIES = ("sparse", "dense", "mixed", "allpushed", "wide", "device")
 BINS = ((0.0, 300.0, "< 300 nm"), (300.0, 1000.0, "300-1000 nm"), (1000.0, 2000.0, "1-2 µm"),
         (2000.0, math.inf, "> 2 µm"))
 

@@ -50,6 +50,21 @@ class Belief:
         self.objects[object_id] = replace(o, at=(float(at[0]), float(at[1])), angle=new_angle)
         self.touched.add(object_id)
 
+    def add_new(self, kind: str, at, height: float, like: EnvObject, t: float, cov: np.ndarray) -> str:
+        """An object seen where no believed object can be: added as ``new<k>`` (a particle
+        ``height`` nm across; a rod takes the length and angle of ``like``, the object
+        looked for). Returns its id."""
+        k = 1 + sum(oid.startswith("new") for oid in self.objects)
+        while f"new{k}" in self.objects:
+            k += 1
+        oid = f"new{k}"
+        rod = kind != "particle" and like.elongated
+        self.objects[oid] = EnvObject(oid, kind if rod else "particle", (float(at[0]), float(at[1])),
+                                      float(height), like.angle if rod else None,
+                                      max(like.length, float(height)) if rod else None, confidence=0.5)
+        self.seen[oid] = Seen(t, np.asarray(cov, float))
+        return oid
+
     def lose(self, object_id: str) -> None:
         self.lost.add(object_id)
 

@@ -93,11 +93,3 @@ class RunContext:
     def log_drift(self, t: float) -> None:
         off = self.offset(t)
         self.ledger.drift.append((t, float(off[0]), float(off[1])))
-
-    def someone_else(self, obj_id: str, at: np.ndarray, expected: np.ndarray | None = None) -> bool:
-        """Whether a scan hit another known object rather than ``obj_id`` (expected at
-        ``expected``, by default where it is believed to be)."""
-        mine = math.dist(at, self.position(obj_id) if expected is None else expected)
-        d = self.belief[obj_id].diameter
-        return any(math.dist(at, self.position(oid)) < min(mine, d)
-                   for oid in self.belief.objects if oid != obj_id and oid not in self.belief.lost)

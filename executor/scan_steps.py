@@ -18,6 +18,7 @@ from nanoasm.planner import Operation
 
 from .context import RunContext
 from .engine import Msg
+from .association import Candidate, associate, sighting
 from .local_scan import particle_after, particle_before, rod_after, rod_before
 from .lost_search import find_lost_particle
 from .motion_steps import approach
@@ -129,9 +130,11 @@ def _pose(o, centre, angle) -> Body:
                 angle if o.elongated else None, o.length if o.elongated else None)
 
 
-def locate(ctx: RunContext, obj_id: str, *, widen: bool = True):
+def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = True):
     """Local scan of an object where it is believed to be; widening search if missed
-    (and ``widen``).
+    (and ``widen``). What the scan found is associated with the belief
+    (:func:`identify`; ``resolve``: an ambiguous sighting is resolved by scanning the
+    other candidates).
 
     Returns (measured pose in the *scanner* frame, covariance, time, scan result) or
     None (lost, or not where expected). Convert with ``ctx.to_layout`` after any drift
@@ -149,6 +152,10 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True):
         direction = clear_direction(ctx, ctx.position(obj_id), half, exclude={obj_id})
         pattern = particle_before(at, o.diameter, r_max, direction=direction, options=ctx.scan_opts)
     res = yield from run_pattern(ctx, pattern)
+    gate = r_max + o.radius + ctx.scan_opts.resolved(o.diameter).margin     # as far as its lines reach
+    if res.found and not (yield from identify(ctx, obj_id, res, np.asarray(res.centre, float) - off, gate,
+                                              resolve=resolve)):
+        res = replace(res, found=False)
     if not res.found and not widen:
         yield Msg("event", (f"{obj_id} not found within {r_max:.0f} nm",), {"level": "warn"})
         return None
@@ -159,11 +166,72 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True):
         if res.found and o.kind == "rod":
             res = yield from run_pattern(ctx, rod_before(res.centre, o.angle, o.length, o.diameter,
                                                          2 * o.diameter, measure_angle=True, options=ctx.scan_opts))
-        if not res.found or ctx.someone_else(obj_id, np.asarray(res.centre, float) - off):
+        if not res.found or not (yield from identify(ctx, obj_id, res, np.asarray(res.centre, float) - off,
+                                                     math.sqrt(2.0) * ctx.options.lost_radius, resolve=resolve)):
             return None
     t = ctx.scan_ref if ctx.scan_ref is not None else (yield Msg("clock"))
     cov = res.cov if res.cov is not None else np.eye(2) * DEFAULT_COV
     return _pose(o, np.asarray(res.centre, float), res.angle), np.asarray(cov, float), t, res
+
+
+#: Objects farther than this (nm) from a sighting are not compared with it.
+ASSOCIATION_REACH = 1000.0
+
+
+def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=None, resolve: bool = True):
+    """Whether the object a located scan result ``res`` shows at ``at`` (layout frame) is
+    ``obj_id`` (believed at ``expected``, by default where the belief puts it, within
+    ``gate`` nm): :func:`~.association.associate` against every believed object near.
+
+    A sighting that another object explains as well is resolved by scanning where those
+    are believed (``resolve``): one found elsewhere is not what was seen (and its
+    sighting is kept); one found at ``at`` is. Unresolved, the sighting goes to the
+    candidate it lies nearer to, relative to their gates. A sighting no believed object
+    explains is added to the belief as a new object. Events say which happened."""
+    t = ctx.scan_ref if ctx.scan_ref is not None else (yield Msg("clock"))
+    at = np.asarray(at, float)
+    cov = res.cov if res.cov is not None else np.eye(2) * DEFAULT_COV
+    height, noise = sighting(res)
+    o = ctx.belief[obj_id]
+    me = Candidate(obj_id, tuple(ctx.position(obj_id) if expected is None else expected), gate, o.diameter)
+    others = [Candidate(oid, tuple(ctx.position(oid)), ctx.r_max(t, oid), b.diameter)
+              for oid, b in ctx.belief.objects.items()
+              if oid != obj_id and oid not in ctx.belief.lost and math.dist(b.at, at) < ASSOCIATION_REACH]
+    assoc = associate(me, others, at, cov, height, noise)
+    if assoc.kind == "match":
+        return True
+    yield Msg("event", (assoc.text(obj_id),), {"level": "warn"})
+    if assoc.kind == "new":
+        new = ctx.belief.add_new(o.kind, at, height if height is not None else o.diameter, o, t,
+                                 ctx.drift.observation_cov(t, cov))
+        yield Msg("event", (f"{new}: a new object at ({at[0]:.0f}, {at[1]:.0f}) nm, "
+                            f"{height if height is not None else o.diameter:.0f} nm high",), {"level": "warn"})
+        return False
+    if assoc.kind == "other" or not resolve:
+        return assoc.kind == "ambiguous" and _nearer(me, others, assoc.others, at)
+    for oid in assoc.others[:2]:
+        found = yield from locate(ctx, oid, widen=False, resolve=False)
+        if found is None:
+            if not _nearer(me, others, (oid,), at):
+                yield Msg("event", (f"{obj_id}: not told apart from {oid}; taken as {oid}",), {"level": "warn"})
+                return False
+            continue
+        scanner, c_cov, t_c = found[:3]
+        seen_at = ctx.to_layout(scanner, t_c)
+        if math.dist(seen_at.at, at) <= 0.5 * min(o.diameter, ctx.belief[oid].diameter):
+            yield Msg("event", (f"{obj_id}: what was found is {oid}",), {"level": "warn"})
+            return False
+        ctx.observe(oid, seen_at.at, t_c, c_cov, angle=seen_at.angle)
+    yield Msg("event", (f"{obj_id}: told apart from {', '.join(assoc.others[:2])}",), {"level": "info"})
+    return True
+
+
+def _nearer(me: Candidate, others: list[Candidate], ids, at) -> bool:
+    """Whether ``at`` lies nearer to ``me`` than to the candidates ``ids``, each distance
+    relative to its gate."""
+    gates = {c.id: c for c in others}
+    q = math.dist(at, me.at) / me.gate
+    return all(q < math.dist(at, gates[i].at) / gates[i].gate for i in ids)
 
 
 def scan_after(ctx: RunContext, op: Operation, start: Body):
@@ -192,6 +260,11 @@ def scan_after(ctx: RunContext, op: Operation, start: Body):
         return None
     t = ctx.scan_ref if ctx.scan_ref is not None else (yield Msg("clock"))
     centre = np.asarray(res.centre, float) - ctx.offset(t)
-    if ctx.someone_else(op.object, centre, expected=np.asarray(op.expect.at, float)):
+    a0, a1 = np.asarray(start.at, float), np.asarray(op.expect.at, float)
+    span = float(np.dot(a1 - a0, a1 - a0))
+    on_path = a0 + (a1 - a0) * (np.clip(np.dot(centre - a0, a1 - a0) / span, 0.0, 1.0) if span > 0 else 0.0)
+    # the pushed object may have stopped anywhere along its push: its gate is about the path
+    reach = r_max + o.radius + ctx.scan_opts.resolved(o.diameter).margin
+    if not (yield from identify(ctx, op.object, res, centre, reach, expected=on_path)):
         return None                  # the lines found a neighbour, not the pushed object
     return _pose(o, centre, res.angle), np.asarray(res.cov if res.cov is not None else np.eye(2) * DEFAULT_COV), t

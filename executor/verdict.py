@@ -7,7 +7,10 @@ uncertainty) looks for an object. A slot is ``filled`` when an object of its kin
 within the layout's tolerance (position, size from the object's height, a rod's angle
 and length); otherwise ``missed`` when an object was assigned to it, else ``unfilled``.
 ``error`` is the measured centre error (nm), None when nothing was found there. An
-object found in its slot is observed there (the belief ends as the scans saw it).
+object found in its slot is observed there (the belief ends as the scans saw it). What
+a particle slot's lines find on a believed rod's body is that rod, not a particle (its
+thickness would pass the size check); a line that a neighbour's edge cut is tried again,
+turned, and a sighting wider than a sphere of its height is no particle.
 """
 
 from __future__ import annotations
@@ -43,6 +46,46 @@ def _size_ok(target, res, tol) -> bool:
     return True
 
 
+#: Turns (degrees) of a particle check's lines tried when a neighbour cut one.
+RETRY_TURNS = (45.0, 22.5, 67.5)
+#: A particle slot's sighting within this (nm) of a believed rod's body is the rod.
+ROD_REACH = 10.0
+
+
+def _rod_there(ctx: RunContext, at) -> str | None:
+    """A believed rod (not lost) whose body covers ``at`` (layout frame) to within
+    :data:`ROD_REACH`: a rod crossing a particle slot looks like a particle to two short
+    lines (its thickness passes the size check)."""
+    import shapely
+
+    p = shapely.Point(float(at[0]), float(at[1]))
+    for oid, o in ctx.belief.objects.items():
+        if o.kind == "rod" and oid not in ctx.belief.lost \
+                and shapely.distance(o.geometry(), p) < o.radius + ROD_REACH:
+            return oid
+    return None
+
+
+#: Tip radius (nm) a sighting's widths allow for, and the slack on the widest.
+TIP_ALLOWANCE = 12.0
+ROUND_SLACK = 1.12
+
+
+def _round(res) -> bool:
+    """Whether what a particle pattern found is as wide as a sphere of its height on
+    every line: a rod crossing the slot obliquely is wider on both lines (by 1/sin and
+    1/cos of its angle to them, at least √2 on one), a particle on none (a line off
+    its centre is narrower)."""
+    found = [ln.edges for ln in res.lines if ln.edges.found and ln.edges.peak is not None]
+    if not found:
+        return True
+    r = max(e.peak for e in found) / 2.0 + TIP_ALLOWANCE
+    widest = max(e.width for e in found)
+    lowest = min(e.level for e in found)
+    sphere = 2.0 * math.sqrt(max(r * r - (lowest - r + TIP_ALLOWANCE) ** 2, 0.0))
+    return widest <= ROUND_SLACK * sphere
+
+
 def _angle_error(a: float, b: float) -> float:
     d = abs((a - b) % 180.0)
     return min(d, 180.0 - d)
@@ -71,6 +114,15 @@ def check_slots(ctx: RunContext, layout: Layout, assignment) -> Any:
             direction = clear_direction(ctx, np.asarray(target.at, float), half, exclude=exclude)
             pattern = particle_before(at, target.diameter, reach, direction=direction, options=opts)
         res = yield from run_pattern(ctx, pattern)
+        for turn in RETRY_TURNS:
+            if res.found or target.kind == "rod" or "cut by the line end" not in res.reason:
+                break
+            # a neighbour at a line's end hid the edge (one the belief does not know of
+            # there): again, the lines turned
+            c, s_ = math.cos(math.radians(turn)), math.sin(math.radians(turn))
+            turned = np.array([c * direction[0] - s_ * direction[1], s_ * direction[0] + c * direction[1]])
+            res = yield from run_pattern(ctx, particle_before(at, target.diameter, reach, direction=turned,
+                                                              options=opts))
         state, error = ("missed" if obj is not None else "unfilled"), None
         if res.found:
             t_scan = ctx.scan_ref if ctx.scan_ref is not None else t
@@ -79,9 +131,18 @@ def check_slots(ctx: RunContext, layout: Layout, assignment) -> Any:
             good = error <= tol.position and _size_ok(target, res, tol)
             if target.kind == "rod":
                 good = good and res.angle is not None and _angle_error(res.angle, target.angle) <= tol.angle
-            if good:
+            rod = _rod_there(ctx, centre) if good and target.kind != "rod" else None
+            if good and target.kind != "rod" and rod is None and not _round(res):
+                good = False
+                yield Msg("event", (f"slot {target.id}: the object found is wider across than a particle "
+                                    f"of its height: an elongated object",), {"level": "warn"})
+            if rod is not None:
+                yield Msg("event", (f"slot {target.id}: the object found lies on the axis of rod {rod}; "
+                                    f"not taken for a particle",), {"level": "warn"})
+            elif good:
                 state = "filled"
-            if obj is not None and obj in ctx.belief.objects and obj not in ctx.belief.lost \
+            if rod is None and (good or error > tol.position) and obj is not None \
+                    and obj in ctx.belief.objects and obj not in ctx.belief.lost \
                     and math.dist(ctx.belief[obj].at, centre) <= reach + tol.position:
                 cov = res.cov if res.cov is not None else np.eye(2) * 4.0
                 ctx.observe(obj, centre, t_scan, cov, angle=res.angle if target.kind == "rod" else None)

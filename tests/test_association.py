@@ -1,0 +1,140 @@
+"""Identity you can trust: a local scan's sighting associated with the belief by position
+and size gates; a neighbour is told apart by scanning it, never silently swapped; a
+sighting no believed object explains becomes a new object."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from simkit import particle, world
+
+from nanoasm.executor.association import Candidate, associate, size_ok
+from nanoasm.executor.belief import Belief
+from nanoasm.executor.context import RunContext
+from nanoasm.executor.documents import EVENT
+from nanoasm.executor.engine import RunEngine
+from nanoasm.executor.estimators import NoDrift
+from nanoasm.executor.references import References
+from nanoasm.executor.scan_steps import locate
+from nanoasm.executor.strategy import ExecOptions
+from nanoasm.world.environment import EnvObject, Environment
+
+COV = np.eye(2) * 4.0
+
+
+def test_the_four_answers():
+    me = Candidate("a", (0.0, 0.0), 30.0, 90.0)
+    near = Candidate("b", (100.0, 0.0), 30.0, 90.0)
+    assert associate(me, [near], (5.0, 0.0), COV, 90.0).kind == "match"
+    wide = Candidate("a", (0.0, 0.0), 80.0, 90.0)
+    both = associate(wide, [Candidate("b", (100.0, 0.0), 80.0, 90.0)], (50.0, 0.0), COV, 90.0)
+    assert both.kind == "ambiguous" and both.others == ("b",)
+    other = associate(me, [near], (95.0, 0.0), COV, 90.0)
+    assert other.kind == "other" and other.others == ("b",)
+    assert associate(me, [near], (300.0, 0.0), COV, 90.0).kind == "new"
+
+
+def test_size_tells_apart_what_position_cannot():
+    me = Candidate("a", (0.0, 0.0), 80.0, 90.0)
+    small = Candidate("s", (60.0, 0.0), 80.0, 50.0)
+    assert associate(me, [small], (30.0, 0.0), COV, 90.0).kind == "match"       # too high for s
+    assert associate(me, [small], (30.0, 0.0), COV, 50.0).kind == "other"       # too low for a
+    assert associate(me, [small], (30.0, 0.0), COV, 140.0).kind == "new"        # higher than either
+    assert associate(me, [small], (30.0, 0.0), COV, None).kind == "ambiguous"   # no height measured
+
+
+@given(st.floats(20.0, 200.0), st.floats(0.0, 1.0))
+def test_heights_within_the_bounds_fit_and_beyond_do_not(d, share):
+    assert size_ok(d * (0.7 + 0.5 * share), d, 0.3)
+    assert not size_ok(d * 1.2 + 3.0 + 1e-6 + share, d, 0.5)
+    assert not size_ok(d * 0.7 - 1.5 - 1e-6 - share, d, 0.5)
+
+
+@given(st.floats(-1.0, 1.0), st.floats(-1.0, 1.0), st.floats(5.0, 100.0))
+def test_a_sighting_inside_only_its_own_gate_is_a_match(u, v, gate):
+    me = Candidate("a", (1000.0, 1000.0), gate, 90.0)
+    z = (1000.0 + u * gate / 1.5, 1000.0 + v * gate / 1.5)
+    far = Candidate("b", (1000.0 + 3 * gate + 20.0, 1000.0), gate, 90.0)
+    assert associate(me, [far], z, np.eye(2) * 0.01, 90.0).kind == "match"
+
+
+# -- against the simulated AFM ------------------------------------------------------------
+
+def _run(truth, believed, step):
+    """Run ``step(ctx)`` against a simulated sample of ``truth`` with the belief
+    ``believed`` ({id: (x, y, d)}); returns (result, ctx, event texts)."""
+    sim = world(truth)
+    env = Environment((4000.0, 4000.0), tuple(EnvObject(k, "particle", (x, y), d) for k, (x, y, d) in
+                                              believed.items()), ())
+    ctx = RunContext(sim.config, ExecOptions(strategy="local-scan", r_max=150.0), NoDrift((0.0, 0.0), 0.0),
+                     Belief(env, 0.0), References())
+    events: list[str] = []
+    engine = RunEngine(sim, [lambda topic, doc: events.append(doc.text) if topic == EVENT else None])
+    return engine.run(step(ctx)), ctx, events
+
+
+def test_a_neighbour_in_the_gate_is_scanned_and_told_apart():
+    truth = [particle((1000, 2000), d=90.0, id="a"), particle((1000, 2130), d=90.0, id="b")]
+    found, ctx, events = _run(truth, {"a": (1000.0, 2000.0, 90.0), "b": (1000.0, 2130.0, 90.0)},
+                              lambda ctx: locate(ctx, "a", widen=False))
+    assert found is not None and math.dist(found[0].at, (1000.0, 2000.0)) < 5.0
+    assert any("could also be b" in e for e in events) and any("told apart" in e for e in events)
+    assert ctx.ledger.counts["local_scans"] == 2                  # a's scan and b's
+
+
+def test_a_neighbour_is_never_taken_for_the_object_looked_for():
+    # a was moved away unseen; b lies within a's search: the scan finds b, which b's own
+    # scan confirms, so a is not found (never a silent swap)
+    truth = [particle((1000, 3000), d=90.0, id="a"), particle((1060, 2000), d=90.0, id="b")]
+    found, ctx, events = _run(truth, {"a": (1000.0, 2000.0, 90.0), "b": (1060.0, 2000.0, 90.0)},
+                              lambda ctx: locate(ctx, "a", widen=False))
+    assert found is None
+    assert any("what was found is b" in e or "is b, not a" in e for e in events)
+    assert math.dist(ctx.belief["b"].at, (1060.0, 2000.0)) < 5.0
+
+
+def test_an_object_no_belief_explains_becomes_a_new_object():
+    # where a 90 nm a is believed, a 50 nm particle lies: not a, and no other believed object
+    truth = [particle((1020, 2000), d=50.0, id="x")]
+    found, ctx, events = _run(truth, {"a": (1000.0, 2000.0, 90.0)}, lambda ctx: locate(ctx, "a", widen=False))
+    assert found is None
+    assert "new1" in ctx.belief.objects
+    new = ctx.belief["new1"]
+    assert math.dist(new.at, (1020.0, 2000.0)) < 5.0 and new.diameter == pytest.approx(50.0, abs=5.0)
+    assert any("new1: a new object" in e for e in events)
+    assert "new1" in ctx.belief.state_dict()["seen"]                   # kept by checkpoints
+
+
+# -- the verdict: a rod crossing a particle slot is no particle -----------------------------
+
+def _check(truth):
+    from nanoasm.bodies import Body
+    from nanoasm.cad.layout import Layout
+    from nanoasm.executor.verdict import check_slots
+    from nanoasm.planner.plan import Assignment
+
+    layout = Layout((4000.0, 4000.0), (Body("s1", "particle", (1000.0, 2000.0), 90.0),))
+    (v,), _, events = _run(truth, {"a": (1000.0, 2000.0, 90.0)},
+                           lambda ctx: check_slots(ctx, layout, (Assignment("s1", "a"),)))
+    return v, events
+
+
+@pytest.mark.parametrize("d", [72.0, 90.0, 108.0])
+def test_a_particle_in_its_slot_is_filled(d):
+    v, _ = _check([particle((1004, 1997), d=d, id="a")])
+    assert v.state == "filled" and v.error < 8.0
+
+
+@pytest.mark.parametrize("angle", [30.0, 45.0, 60.0, 120.0])
+def test_a_rod_across_a_particle_slot_is_not_taken_for_a_particle(angle):
+    from simkit import rod
+
+    # 70 nm thick: within the slot's 25 % size tolerance of 90 nm, so only its shape tells
+    v, events = _check([rod((1000, 2000), angle, 500.0, d=70.0, id="r")])
+    assert v.state == "missed"
+    assert any("elongated" in e for e in events)
