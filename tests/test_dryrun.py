@@ -125,8 +125,6 @@ def test_the_run_harness_reports_what_the_run_believes(runs, bowtie):
 def test_the_run_harness_goes_on_from_a_checkpoint(bowtie):
     """A run resumed by the harness from its second checkpoint (the state as a log gives
     it) ends as the uninterrupted run; its instrument time is its own."""
-    import pickle
-
     from nanoasm.executor.documents import as_dict
     from nanoasm.executor.resume import ResumePoint
     from nanoasm.executor.runlog import to_json
@@ -141,12 +139,12 @@ def test_the_run_harness_goes_on_from_a_checkpoint(bowtie):
         if topic in ("environment", "plan", "checkpoint"):
             kept.setdefault(topic, []).append(json.loads(to_json(as_dict(doc))))
         if topic == "checkpoint" and len(kept["checkpoint"]) == 2:
-            kept["sim"] = pickle.dumps(sim)
+            kept["sim"] = json.dumps(sim.state_dict(), allow_nan=False)
 
     whole = run(layout, sim, options=options, subscribers=[keep])
     state = {**kept["checkpoint"][1], "env": kept["environment"][0], "first_plan": kept["plan"][0]}
     state.pop("saved_at", None)                 # resumed at once: no pause to add
-    resumed = run(layout, pickle.loads(kept["sim"]), options=options,
+    resumed = run(layout, simmod.SimulatedAFM.from_state(scene, json.loads(kept["sim"])), options=options,
                   resume=ResumePoint("stopped.mcap", state, layout, {}))
     assert resumed.assignment == whole.assignment and resumed.counts == whole.counts
     assert 0 < resumed.instrument_time.total < whole.instrument_time.total

@@ -297,6 +297,24 @@ class SimulatedAFM:
         return {"pushes": w.pushes, "slips": w.slips, "blunted": w.blunted, "steps": w.steps,
                 "tip_radius": w.tip_radius}
 
+    # -- persistence (a dry-run kept beside its log) --------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything the world holds that changes as it runs, as JSON types: parameters,
+        seed, objects, pushes in progress, clock, tip, drift's moves, random generators'
+        states (:mod:`nanoasm.world.sim.state`)."""
+        from .state import sim_state
+
+        return sim_state(self)
+
+    @classmethod
+    def from_state(cls, scene: Scene, state: dict) -> SimulatedAFM:
+        """The simulated AFM over ``scene`` as :meth:`state_dict` gave it; every field is
+        checked and a bad one, or a state of another scene, raises ``ValueError`` naming
+        its key."""
+        from .state import sim_from_state
+
+        return sim_from_state(scene, state)
+
     # -- helpers -----------------------------------------------------------------------------------
     def _smooth(self, xy: np.ndarray) -> np.ndarray:
         """The piezo follows the DAC through its amplifier's first-order low-pass
