@@ -35,7 +35,7 @@ from nanoasm.executor.summary import RunSummary
 from nanoasm.harness import LogTo, plain, report_of, run_logs
 from nanoasm.planner import PlanOptions
 from nanoasm.planner.assign import in_slot
-from nanoasm.simkeep import SimKeeper, load_sim_state, sim_state_path
+from nanoasm.simkeep import SimKeeper, read_sim_state, restore_sim, sim_state_path
 from nanoasm.world.scene import Scene, load_scene
 from nanoasm.world.sim import SimulatedAFM
 
@@ -268,7 +268,7 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     drift_log, push_log = _DriftLog(), _PushLog(sim)
     subscribers = [*(subscribers or ()), drift_log, push_log]
     if keep_sim is not None:
-        subscribers.append(SimKeeper(keep_sim, sim, {"start_clock": start_clock, "initial": initial_sample}))
+        subscribers.append(SimKeeper(keep_sim, sim, start_clock, initial_sample))
     engine = RunEngine(sim, subscribers)
     # run logs get the scene before and the truth after the run, from this harness alone
     logs = [s for s in subscribers if isinstance(s, RunLog)]
@@ -317,11 +317,12 @@ def resume_dry_run(stopped: Path, *, plan_options: PlanOptions | None = None, lo
     ``log.path`` or else a new log beside the old one. Returns the outcome and the layout."""
     if not stopped.is_file():
         raise InputError(str(stopped), None, "no such run log")
-    kept = load_sim_state(sim_state_path(stopped))
-    point = resume_point(stopped, "dry-run", at=float(kept["t"]))
+    kept = read_sim_state(sim_state_path(stopped))      # JSON, its outer fields checked
+    point = resume_point(stopped, "dry-run", at=kept["t"])
     meta = point.metadata
     if point.scene is None:
         raise InputError(str(stopped), "scene.json", "the log has no scene attached")
+    kept = restore_sim(sim_state_path(stopped), kept, point.scene, point.state)   # of the log's scene
     seed = int(meta["seed"]) if meta.get("seed", "None") not in ("None", "") else None
     log = replace(log, path=log.path or resumed_log_path(stopped))
     outcome = _logged(point.scene, point.layout, {**meta, "resumed_from": str(stopped)}, log, report, progress,

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import pickle
 import subprocess
 import sys
 import time
@@ -35,7 +34,7 @@ def _run_and_keep(k: int, strategy: str = "full", seed: int = 3):
     """An uninterrupted run that keeps the world and the state at its k-th checkpoint."""
     scene, layout = particle_bowtie()
     sim = SimulatedAFM(scene, seed=seed)
-    kept: dict = {}
+    kept: dict = {"scene": scene}
 
     def keep(topic: str, doc: dict) -> None:
         # what resume_point takes from a log: a checkpoint, the environment and the first plan
@@ -46,7 +45,7 @@ def _run_and_keep(k: int, strategy: str = "full", seed: int = 3):
             if kept["n"] == k:
                 kept["state"] = {**json.loads(json.dumps(doc)), "env": kept["environment"],
                                  "first_plan": kept["plan"]}
-                kept["sim"] = pickle.dumps(sim)
+                kept["sim"] = json.dumps(sim.state_dict(), allow_nan=False)   # as the dry-run keeps it
 
     summary = RunEngine(sim, [keep]).run(Assembly(layout, ExecOptions(strategy=strategy)).procedure(sim.config))
     return layout, sim, summary, kept
@@ -56,7 +55,7 @@ def _run_and_keep(k: int, strategy: str = "full", seed: int = 3):
 def test_a_run_resumed_from_a_checkpoint_ends_as_the_uninterrupted_run(strategy):
     layout, sim, summary, kept = _run_and_keep(3, strategy)
     assert "state" in kept, "the run ended before its third push"
-    sim2 = pickle.loads(kept["sim"])
+    sim2 = SimulatedAFM.from_state(kept["scene"], json.loads(kept["sim"]))
     resumed = RunEngine(sim2, []).run(Assembly(layout, ExecOptions(strategy=strategy))
                                       .resume(sim2.config, kept["state"]))
     assert resumed.counts == summary.counts
@@ -64,13 +63,15 @@ def test_a_run_resumed_from_a_checkpoint_ends_as_the_uninterrupted_run(strategy)
     assert resumed.pushed == summary.pushed
     a, b = _final(sim), _final(sim2)
     assert max(np.hypot(*np.subtract(a[i], b[i])) for i in a) < 1e-6
+    assert a == b and sim.ledger() == sim2.ledger()              # bit for bit, the whole world
+    assert json.dumps(sim.state_dict()) == json.dumps(sim2.state_dict())
 
 
 def test_a_resume_after_a_pause_widens_the_search_and_still_finishes():
     """The instrument's clock restarted (a new process) and ten minutes passed: the
     shifted clock goes on, the filter's uncertainty has grown, the run ends normally."""
     layout, sim, summary, kept = _run_and_keep(2)
-    sim2 = pickle.loads(kept["sim"])
+    sim2 = SimulatedAFM.from_state(kept["scene"], json.loads(kept["sim"]))
     sim2._clock.advance(600.0, "travel")          # the sample drifted on while nothing ran
     restarted = ShiftedClock(sim2, -sim2.clock())  # a new process: its clock starts at 0
     assert restarted.clock() == 0.0
@@ -109,7 +110,21 @@ def test_a_killed_dry_run_resumed_fills_the_slots_the_uninterrupted_run_fills(tm
     log = tmp_path / "run.mcap"
     proc = _dry_run_cli(["dry-run", str(scene_file), str(layout_file), "--seed", "3", "--log", str(log)], tmp_path)
     kill_when(proc, lambda: log.exists() and len(read_log(log, topics={"/checkpoint"}).topic("/checkpoint")) >= 2)
-    assert sim_state_path(log).exists()
+    kept = sim_state_path(log)
+    assert kept.exists() and kept.stat().st_mode & 0o777 == 0o600
+    good = kept.read_bytes()
+    doc = json.loads(good)                      # JSON, not a pickle
+    assert doc["format"] == "nanoasm.simstate/2" and doc["world"]["format"] == "nanoasm.simworld/1"
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    for key, value, text in (("scene_sha256", "0" * 64, "scene_sha256: the world kept is of another scene"),
+                             ("seed", -1, "seed: must be a non-negative integer")):
+        kept.write_text(json.dumps({**doc, "world": {**doc["world"], key: value}}))
+        done = subprocess.run([sys.executable, "-m", "nanoasm.cli", "dry-run", "--resume", str(log)], cwd=tmp_path,
+                              capture_output=True, text=True, timeout=120, env=env)
+        lines = done.stderr.strip().splitlines()
+        assert done.returncode == 1 and len(lines) == 1, done.stderr
+        assert lines[0].startswith(f"nanoasm: error: {kept}: world: ") and text in lines[0], lines[0]
+    kept.write_bytes(good)
     report = tmp_path / "resumed.json"
     done = subprocess.run([sys.executable, "-m", "nanoasm.cli", "dry-run", "--resume", str(log),
                            "--report", str(report)], cwd=tmp_path, capture_output=True, text=True, timeout=300,
@@ -145,11 +160,11 @@ def test_resume_refuses_what_it_cannot_resume(tmp_path):
     with pytest.raises(InputError, match="not a run's log .resume it with nanoasm dry-run --resume"):
         resume_point(finished, "run")
     with pytest.raises(InputError, match="missing"):
-        load_sim_state(tmp_path / "none.mcap.sim")
+        load_sim_state(tmp_path / "none.mcap.sim", None)
     bad = tmp_path / "bad.sim"
     bad.write_bytes(b"not a pickle")
     with pytest.raises(InputError, match="unreadable"):
-        load_sim_state(bad)
+        load_sim_state(bad, None)
 
 
 def test_resume_errors_on_the_command_line_are_one_line(tmp_path):
