@@ -12,6 +12,7 @@ from nanoasm.examples import path as example
 from nanoasm.executor.report import report_from_dict
 from nanoasm.executor.strategy import STRATEGIES, ExecOptions
 from nanoasm.world import sim as simmod
+from nanoasm.executor.verdict import RETRY_TURNS
 from nanoasm.world.scene import load_scene
 
 
@@ -48,7 +49,9 @@ def test_every_strategy_runs_to_a_valid_report(runs, bowtie, strategy):
     assert {a.target for a in rep.assignment} | {u.target for u in rep.unfilled} == \
         {tg.id for tg in layout.targets}
     if strategy == "open-loop":                # no scans but the final check of every slot
-        assert rep.counts.local_scans == len(layout.targets) and 0 < t.local_scan < 120
+        # (a check whose line a neighbour cut goes round again, turned: up to RETRY_TURNS)
+        n = len(layout.targets)
+        assert n <= rep.counts.local_scans <= n * (1 + len(RETRY_TURNS)) and 0 < t.local_scan < 120
     else:
         assert rep.counts.local_scans >= rep.counts.pushes
 
