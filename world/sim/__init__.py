@@ -5,7 +5,8 @@ pushing physics (:mod:`.push`, :mod:`.push_support`, :mod:`.rods`, :mod:`.wire`)
 objects' truth (:mod:`.objects`) and their contacts (:mod:`.contacts` on
 :mod:`.contact_space`), with the signal model (:mod:`.signals`, :mod:`.calibration`), the
 drift and creep truth (:mod:`.drift_model`), push faults (:mod:`.faults`) and the
-instrument clock (:mod:`.clock`). Only the dry-run harness, tests and benchmarks import
+instrument clock (:mod:`.clock`); its whole state as checked JSON for a resumed dry-run
+(:mod:`.state`). Only the dry-run harness, tests and benchmarks import
 this package; the executor never does.
 """
 
