@@ -103,11 +103,16 @@ def creep_rate(t: float, move_times: np.ndarray, move_steps: np.ndarray,
     return amplitude * lengths / (math.log(10.0) * (tau + np.maximum(t - times, 0.0)))
 
 
+#: A move this much (s) before the last recorded one is taken as made at the same time:
+#: instrument times summed in another order differ in the last bits (1e-12 s at 5000 s).
+TIME_TOLERANCE = 1e-6
+
+
 class CreepHistory:
     """The recent large moves and the frozen creep of the older ones.
 
     Times are in s on the caller's clock (the drift filter passes times relative to its
-    epoch). Moves must be recorded in time order.
+    epoch). Moves must be recorded in time order (to :data:`TIME_TOLERANCE`).
     """
 
     def __init__(self, params: CreepModelParams):
@@ -141,8 +146,10 @@ class CreepHistory:
         if not all(math.isfinite(v) for v in (t, sx, sy)):
             raise ValueError("move time and step must be finite")
         if self._times and t < self._times[-1]:
-            raise ValueError(f"moves must be recorded in time order: t={t} precedes "
-                             f"the last move at {self._times[-1]}")
+            if t < self._times[-1] - TIME_TOLERANCE:
+                raise ValueError(f"moves must be recorded in time order: t={t} precedes "
+                                 f"the last move at {self._times[-1]}")
+            t = self._times[-1]          # the same instant, summed another way round
         p = self.params
         if p.amplitude == 0.0 or math.hypot(sx, sy) < p.min_step:
             return False

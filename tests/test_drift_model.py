@@ -52,6 +52,7 @@ def test_large_epoch_loses_no_precision():
     assert late.thermal(1.0e9) == (0.0, 0.0)
     with pytest.raises(ValueError, match="precede the epoch"):
         late.thermal(0.0)
+    assert late.thermal(1.0e9 - 1e-7) == (0.0, 0.0)     # the epoch, rounded below it
 
 
 # -- statistics -------------------------------------------------------------------------------------

@@ -529,6 +529,17 @@ def test_creep_history_prunes_continuously():
         hist.record(0.0, (1000.0, 0.0))
 
 
+def test_creep_history_takes_a_rounding_apart_as_the_same_time():
+    """5078.923 after 5078.923000000001 (the same instant summed in another order) was
+    refused and stopped a 1000-object dry-run; a millisecond before still is refused."""
+    hist = CreepHistory(CreepModelParams(amplitude=0.02, tau=1.0, min_step=500.0))
+    assert hist.record(5078.923000000001, (1000.0, 0.0))
+    assert hist.record(5078.923, (0.0, 1000.0))
+    np.testing.assert_array_equal(hist.times, [5078.923000000001] * 2)
+    with pytest.raises(ValueError, match="time order"):
+        hist.record(5078.922, (1000.0, 0.0))
+
+
 def _creep_run(model: CreepModelParams, seed: int = 0):
     """Converge, make a 5.4 µm move, and measure every 5 s; truth creeps with c = 0.02.
 

@@ -84,9 +84,9 @@ class DriftModel:
         tau = np.asarray(t, float) - self.epoch
         if not np.all(np.isfinite(tau)):
             raise ValueError("times must be finite")
-        if np.any(tau < 0):
+        if np.any(tau < -1e-6):         # a microsecond before: the epoch itself, summed otherwise
             raise ValueError(f"times must not precede the epoch {self.epoch:g} s")
-        return tau
+        return np.maximum(tau, 0.0)
 
     def _extend(self, nodes: int) -> None:
         """Generate grid nodes (block by block, each from its own stream) up to ``nodes``."""
