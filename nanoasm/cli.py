@@ -2,13 +2,16 @@
 
 Every user error (bad file, bad option) ends in one line on stderr and a non-zero exit:
 1 for a bad input file or value, 2 for a bad command line. No traceback, no partial
-output file.
+output file, and no output written over one of the command's inputs (:func:`_outputs_apart`).
+SIGTERM ends a command as Ctrl-C does, in one line, with exit 143.
 """
 
 from __future__ import annotations
 
 import os
+import signal
 import sys
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, NoReturn, Optional
@@ -39,6 +42,31 @@ app.add_typer(layout_app, name="layout")
 app.add_typer(scene_app, name="scene")
 
 NATIVE = (".toml", ".json")
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether paths ``a`` and ``b`` name one file: ``os.path.samefile`` when both exist
+    (links, ``..``, another spelling), else their resolved paths."""
+    try:
+        if a.exists() and b.exists():
+            return os.path.samefile(a, b)
+    except OSError:
+        pass
+    try:
+        return a.resolve() == b.resolve()
+    except (OSError, RuntimeError):
+        return a.absolute() == b.absolute()
+
+
+def _outputs_apart(outputs: list[tuple[str, Path | None]], inputs: list[tuple[str, Path | None]]) -> None:
+    """Refuse, before anything is read or written, an output that is one of the inputs:
+    ``outputs`` and ``inputs`` pair the option (or argument) naming a file with it (None:
+    not given). The one line names the output, its option and the input it would overwrite."""
+    for option, out in outputs:
+        for source, given in inputs:
+            if out is not None and given is not None and _same_file(out, given):
+                raise InputError(str(out), option, f"is also an input ({source}); an output never "
+                                                   "overwrites an input")
 
 
 def _version(value: bool) -> None:
@@ -144,6 +172,7 @@ def layout_convert(
     """Convert a CAD drawing (or a TOML/JSON layout) into a validated layout file."""
     if output.suffix.lower() not in NATIVE:
         raise InputError(str(output), None, "output must end in .toml or .json")
+    _outputs_apart([("-o", output)], [("FILE", file)])
     opts = _importer_options(scale, cell, rod_diameter, area, particle_layer, rod_layer,
                              keepout_layer, area_layer, keepout_class)
     layout = _read_layout(file, opts)
@@ -248,6 +277,7 @@ def identify_cmd(
 
     if output.suffix.lower() != ".json":
         raise InputError(str(output), None, "output must end in .json")
+    _outputs_apart([("-o", output)], [("SCAN", scan)])
     for option, value in (("--cut", cut), ("--min-area", min_area), ("--pixel-size", pixel_size),
                           ("--tip-radius", tip_radius)):
         if value is not None:
@@ -288,6 +318,7 @@ def plan_cmd(
         raise InputError(str(output), None, "output must end in .json")
     if (env_file is None) == (scan is None):
         raise InputError(None, "--env/--scan", "give exactly one of --env ENV.json or --scan SCAN")
+    _outputs_apart([("-o", output)], [("LAYOUT", layout_file), ("--env", env_file), ("--scan", scan)])
     _check_planner(planner)
     options = _options(PlanOptions, tip_radius=tip_radius, margin=margin, planner=planner, budget=budget,
                        seed=seed)
@@ -344,6 +375,20 @@ ReportFile = Annotated[Optional[Path], typer.Option("--report", help="Write the 
 Resume = Annotated[Optional[Path], typer.Option("--resume", help="Go on with the stopped run of this log from "
                                                               "its last checkpoint (writes LOG-resumed.mcap "
                                                               "unless --log says otherwise).")]
+Force = Annotated[bool, typer.Option("--force", help="Overwrite an existing --log file (and, for a dry-run, "
+                                                     "the world kept beside it, LOG.sim).")]
+
+
+def _check_log(log: Path | None, force: bool, kept: Path | None = None) -> None:
+    """Refuse an existing ``--log`` file, or the world a dry-run keeps beside it (``kept``),
+    unless ``--force``: checked before anything runs."""
+    if log is None or force:
+        return
+    if os.path.lexists(log) and not log.is_dir():
+        raise InputError(str(log), "--log", "exists; give --force to overwrite it")
+    if kept is not None and os.path.lexists(kept) and not kept.is_dir():
+        raise InputError(str(kept), "--log", "the world kept by a dry-run logged there exists; give --force "
+                                             "to overwrite it")
 
 
 def _check_run_options(strategy: str, report: Path | None) -> None:
@@ -403,14 +448,23 @@ def dry_run_cmd(
     live: Live = False,
     live_port: LivePort = 8765,
     resume: Resume = None,
+    force: Force = False,
 ) -> None:
     """Assemble LAYOUT in a simulated world holding SCENE, exactly as a real run would."""
     from nanoasm.dryrun import dry_run_files, resume_dry_run
     from nanoasm.examples import path as example
     from nanoasm.harness import LogTo
     from nanoasm.planner.options import PlanOptions
+    from nanoasm.simkeep import sim_state_path
 
     _check_run_options(strategy, report)
+    if resume is None and scene_file is None and layout_file is None:
+        scene_file, layout_file = example("bowtie_scene.toml"), example("bowtie.toml")
+    kept = None if log is None else sim_state_path(log)
+    _outputs_apart([("--log", log), ("--log", kept), ("--report", report)],
+                   [("SCENE", scene_file), ("LAYOUT", layout_file), ("--resume", resume),
+                    ("the world kept for --resume", None if resume is None else sim_state_path(resume))])
+    _check_log(log, force, kept)
     log_to = LogTo(log, live, live_port)
     if resume is not None:
         if scene_file is not None or layout_file is not None:
@@ -423,8 +477,6 @@ def dry_run_cmd(
         return
     if (scene_file is None) != (layout_file is None):
         raise InputError(None, "SCENE LAYOUT", "give both a scene and a layout, or neither for the example")
-    scene_file = scene_file or example("bowtie_scene.toml")
-    layout_file = layout_file or example("bowtie.toml")
     _check_planner(planner)
     plan_options = _options(PlanOptions, planner=planner, budget=budget, seed=seed or 0)
     outcome, layout = dry_run_files(scene_file, layout_file, seed=seed, strategy=strategy,
@@ -447,6 +499,7 @@ def run_cmd(
     live: Live = False,
     live_port: LivePort = 8765,
     resume: Resume = None,
+    force: Force = False,
 ) -> None:
     """Assemble LAYOUT unattended on the instrument described by --instrument (NI-DAQmx)."""
     from nanoasm.harness import LogTo
@@ -465,6 +518,9 @@ def run_cmd(
         raise InputError(None, "--resume", "takes the layout from the log; give no LAYOUT")
     if resume is None and layout_file is None:
         raise InputError(None, "LAYOUT", "is required (or --resume LOG)")
+    _outputs_apart([("--log", log), ("--report", report)],
+                   [("LAYOUT", layout_file), ("--instrument", instrument), ("--resume", resume)])
+    _check_log(log, force)
     rep = run_files(instrument, layout_file, strategy=strategy, resume_from=resume,
                     log=LogTo(log, live, live_port), report=report, progress=_run_progress("run"))
     states = {s: sum(v.state == s for v in rep.slots) for s in ("filled", "missed", "unfilled")}
@@ -605,6 +661,7 @@ def review_cmd(
 
     if plot is not None and plot.suffix.lower() not in (".png", ".svg", ".pdf"):
         raise InputError(str(plot), None, "plot must end in .png, .svg or .pdf")
+    _outputs_apart([("--plot", plot)], [("LOG", log_file)])
     rev = review(log_file)
     print_review(rev)
     if plot is not None:
@@ -614,8 +671,40 @@ def review_cmd(
 
 # -- entry point --------------------------------------------------------------------
 
+class _Terminated(BaseException):
+    """SIGTERM outside a run; within one the run engine raises its own ``Terminated``
+    (after stopping the run and closing its log)."""
+
+
+def _raise_terminated(signum, frame) -> NoReturn:
+    raise _Terminated()
+
+
+def _is_terminated(exc: BaseException) -> bool:
+    engine = sys.modules.get("nanoasm.executor.engine")     # imported only by the commands that run
+    return isinstance(exc, _Terminated) or (engine is not None and isinstance(exc, engine.Terminated))
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; returns (and, as a script, exits with) the exit code."""
+    """Run the CLI; returns (and, as a script, exits with) the exit code.
+
+    SIGTERM ends the command as Ctrl-C does (a run stopped, its log closed, no output
+    half-written), with the line ``nanoasm: terminated`` and exit 143 (128 + SIGTERM)."""
+    on_main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _raise_terminated) if on_main_thread else None
+    try:
+        return _main(argv)
+    except BaseException as exc:
+        if not _is_terminated(exc):
+            raise
+        print("nanoasm: terminated", file=sys.stderr)
+        return 143
+    finally:
+        if on_main_thread:
+            signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
+def _main(argv: list[str] | None) -> int:
     command = typer.main.get_command(app)
     args = sys.argv[1:] if argv is None else argv
     try:

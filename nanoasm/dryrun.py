@@ -337,6 +337,9 @@ def _logged(scene: Scene, layout: Layout, meta: dict, log: LogTo, report: Path |
             progress: AbstractContextManager | None, **kwargs) -> Outcome:
     """:func:`dry_run` with its run log, progress subscribers and report file."""
     with run_logs(log, layout, meta, truth=True) as logs, progress or nullcontext([]) as shown:
+        if kwargs.get("keep_sim") is not None:
+            # a log written over (--force): the world kept for the old one must not stay beside it
+            Path(kwargs["keep_sim"]).unlink(missing_ok=True)
         outcome = dry_run(scene, layout, subscribers=[*shown, *logs], **kwargs)
     if report is not None:
         outcome.report.save(report)
