@@ -101,9 +101,12 @@ class DriftFilter:
         Time of the prior, s after the epoch.
     learn_creep : bool
         Estimate the creep amplitude's error too, as a last static parameter of prior
-        ``creep.amplitude_std`` (appended to ``x0`` and ``P0``): the creep input is then
-        nominal and the offset is ``thermal + creep + δc g``, ``g`` the creep per unit
-        amplitude.
+        ``creep.amplitude_std`` (appended to ``x0`` and ``P0``; or given with them, when
+        ``x0`` has one component more than ``4 + statics``, so that its prior may be
+        correlated with the rest): the creep input is then nominal and the offset is
+        ``thermal + creep + δc g``, ``g`` the creep per unit amplitude. A measurement
+        may depend on ``δc`` beyond the creep now: :meth:`measure_projected`'s
+        ``static`` then has one column more, added to ``δc``'s.
     """
 
     def __init__(self, params: DriftFilterParams | None = None, *, epoch: float = 0.0,
@@ -119,6 +122,10 @@ class DriftFilter:
         self.epoch = float(epoch)
         self._tau = float(start)
         self._x = np.zeros(n) if x0 is None else np.asarray(x0, float).copy()
+        joint = self.learn_creep and self._x.shape == (n + 1,)    # δc's prior given with the rest
+        if joint:
+            n += 1
+            self.statics += 1
         if self._x.shape != (n,) or not np.all(np.isfinite(self._x)):
             raise ValueError(f"x0 must be a finite ({n},) array, got shape {self._x.shape}")
         if P0 is None:
@@ -128,7 +135,7 @@ class DriftFilter:
         P0 = np.asarray(P0, float)
         if P0.shape != (n, n):
             raise ValueError(f"P0 must be a ({n}, {n}) array, got shape {P0.shape}")
-        if self.learn_creep:             # the creep amplitude's error, last: its prior
+        if self.learn_creep and not joint:  # the creep amplitude's error, last: its prior
             self._x = np.append(self._x, 0.0)
             P0 = np.block([[P0, np.zeros((n, 1))], [np.zeros((1, n)), np.array([[p.creep.amplitude_std**2]])]])
             n += 1
@@ -222,11 +229,14 @@ class DriftFilter:
         m = N.shape[0]
         user = self.statics - int(self.learn_creep)
         S = np.zeros((m, user)) if static is None else np.asarray(static, float)
-        if S.shape != (m, user) or not np.all(np.isfinite(S)):
+        extra = np.zeros(m)
+        if self.learn_creep and S.shape == (m, user + 1):   # a dependence on δc beyond the creep now
+            S, extra = S[:, :user], S[:, user]
+        if S.shape != (m, user) or not np.all(np.isfinite(S)) or not np.all(np.isfinite(extra)):
             raise ValueError(f"static must be a finite ({m}, {user}) array")
         parts = [N @ H_OFFSET, S]
         if self.learn_creep:
-            parts.append((N @ self._sensitivity(tau))[:, None])
+            parts.append((N @ self._sensitivity(tau) + extra)[:, None])
         return np.hstack(parts)
 
     def _predict(self, x: np.ndarray, L: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -403,7 +413,9 @@ class DriftFilter:
         label : str, optional
         static : (m, statics) array, optional
             How ``z`` depends on the static parameters too (``z = N offset + static θ``),
-            e.g. the drift a reference image carried; none by default.
+            e.g. the drift a reference image carried; none by default. With
+            ``learn_creep``, ``statics`` counts the user's alone, or one more: the last
+            column is a dependence on the creep amplitude's error beyond the creep now.
         """
         N = np.asarray(directions, float).reshape(-1, 2)
         z = np.asarray(z, float).reshape(-1)

@@ -34,7 +34,9 @@ class RunContext:
 
     ``moving``: objects the current plan still moves (never drift references).
     ``scan_ref``: time of the running scan pattern's first line (its lines are
-    compensated to that time), None between patterns. ``landmarks``: the fixed features
+    compensated to that time), None between patterns; ``scan_comp``: the covariance of
+    that compensation's error for the running pattern's worst line, ``scan_creep`` the
+    creep (nominal amplitude) in each line's. ``landmarks``: the fixed features
     and relocalisation windows; ``timing``: what a scan line costs on this instrument;
     ``here``: the tip's last known XY (scanner frame); ``full_scan``: the first full scan
     in the layout frame and ``env_objects`` what it showed (neither kept in
@@ -49,6 +51,8 @@ class RunContext:
     scan_opts: ScanOptions | None = None
     moving: set[str] = field(default_factory=set)
     scan_ref: float | None = None
+    scan_comp: np.ndarray = field(default_factory=lambda: np.zeros((2, 2)))
+    scan_creep: list = field(default_factory=list)
     landmarks: Landmarks = field(default_factory=Landmarks)
     timing: LineTiming = field(default_factory=LineTiming)
     here: np.ndarray | None = None

@@ -31,12 +31,15 @@ def emit_drift(ctx: RunContext, t: float):
         yield Msg("emit", ("drift", ctx.drift.doc(t)))
 
 
-def fold(ctx: RunContext, obj_id: str, scanner_at, cov, t: float, *, reference: bool = False) -> bool:
+def fold(ctx: RunContext, obj_id: str, scanner_at, cov, t: float, *, reference: bool = False,
+         scan=None) -> bool:
     """Fold a measured position (scanner frame) of ``obj_id`` into the drift estimate, if
-    it measures drift (``reference``: the reference the estimator chose); False only when
-    the estimate's gate rejected it (it moved on its own)."""
+    it measures drift (``reference``: the reference the estimator chose; ``scan``: the
+    local scan that located it, whose lines' creep compensation the estimate models);
+    False only when the estimate's gate rejected it (it moved on its own)."""
     measure = ctx.drift.measure_reference if reference else ctx.drift.measure
-    folded = measure(obj_id, scanner_at, cov, t, ctx.refs, ctx.ledger.pushed, ctx.belief.lost)
+    sens = scan.creep_sensitivity() if hasattr(scan, "creep_sensitivity") else None
+    folded = measure(obj_id, scanner_at, cov, t, ctx.refs, ctx.ledger.pushed, ctx.belief.lost, sens)
     if folded is not None:
         ctx.log_drift(t)
     return folded is not False
@@ -80,8 +83,8 @@ def scan_object_reference(ctx: RunContext, ref: str):
             ctx.belief.lose(ref)
             ctx.drift.reject(ref, (yield Msg("clock")))
         return
-    body, cov, t, _ = found
-    if not fold(ctx, ref, body.at, cov, t, reference=True):
+    body, cov, t, res = found
+    if not fold(ctx, ref, body.at, cov, t, reference=True, scan=res):
         yield Msg("event", (f"{ref} moved on its own (gated out of the drift estimate; "
                             f"{ctx.refs.note(ref)})",), {"level": "warn"})
     yield from emit_drift(ctx, t)
@@ -126,7 +129,8 @@ def scan_feature(ctx: RunContext, fid: str):
     z = np.array([n @ (p + o * n - est.origin - np.asarray(site.point, float) + est.scan.creep_at(tau))
                   for (p, n, _), o, site, tau in zip(placed, res.offsets, marks.features[fid].sites, taus)])
     line_stds = [step.std for step in res.steps]
-    ok = est.measure_feature(fid, z, H, marks.measurement_cov(est, fid, line_stds), t_scan, taus)
+    R = marks.measurement_cov(est, fid, line_stds) + H @ ctx.scan_comp @ H.T
+    ok = est.measure_feature(fid, z, H, R, t_scan, taus, _site_creep(res, H))
     if ok:
         marks.found(fid)
     else:
@@ -137,6 +141,14 @@ def scan_feature(ctx: RunContext, fid: str):
     ctx.log_drift(t_scan)
     yield from emit_drift(ctx, t_scan)
     return ok
+
+
+def _site_creep(res, normals) -> np.ndarray | None:
+    """Each edge site's offset per unit relative error of the creep amplitude its line
+    was compensated with (its line's creep along its normal), or None."""
+    if res.line_creep is None or len(res.line_creep) != len(normals):
+        return None
+    return np.einsum("ij,ij->i", np.asarray(normals, float), res.line_creep)
 
 
 def _bootstrap_picks(ctx: RunContext) -> list[tuple[str, str, float]]:
@@ -173,7 +185,8 @@ def bootstrap(ctx: RunContext):
     (:class:`~nanoasm.executor.scan_drift.ScanDrift`): measured by Bayesian least
     squares, they start the drift filter and take every other object of the first scan
     out of its row's drift. Each reference sharpens the model that sizes the next one's
-    lines; the variance of a measured component is taken as :data:`BOOTSTRAP_VAR`.
+    lines; the variance of a measured component is taken as :data:`BOOTSTRAP_VAR` plus the
+    located position's own (which holds what the lines' creep compensation may err by).
     """
     drift = ctx.drift
     if not drift.bootstraps:
@@ -189,8 +202,8 @@ def bootstrap(ctx: RunContext):
         if scanned is None:
             continue
         rows, t, seen = scanned
-        for n, z, tau1, tau0 in rows:
-            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR)
+        for n, z, tau1, tau0, creep1, var in rows:
+            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1)
         if seen is not None:
             seen_objects.append(seen)
         used += 1
@@ -213,20 +226,28 @@ def bootstrap(ctx: RunContext):
 
 def _bootstrap_rows(ctx: RunContext, kind: str, rid: str, seen_t: float):
     """Scan one bootstrap reference again: ``(rows, time, seen)`` with rows of ``(n, z,
-    τ now, τ then)`` (``z``: the component along ``n`` of the drift between, creep taken
-    out), ``seen`` an object's sighting to record once the drift is known; None when it
-    was not found, or is not yet known well enough along its edge to be scanned."""
+    τ now, τ then, creep now, var)`` (``z``: the component along ``n`` of the drift
+    between, the nominal creep taken out; creep now: the nominal creep of every move so
+    far, and what the scan lines' compensation makes of the amplitude's error; var: the
+    located position's variance along ``n``, the compensation's included), ``seen`` an object's sighting to record once the drift is
+    known; None when it was not found, or is not yet known well enough along its edge to
+    be scanned."""
     drift = ctx.drift
     ep = drift.epoch
     if kind == "object":
         found = yield from locate(ctx, rid)
         if found is None:
             return None
-        body, cov, t, _ = found
-        # D(t) - D(τ) less the creep modelled now and then
+        body, cov, t, res = found
+        # D(t) - D(τ) less the creep modelled now and then; the lines' compensation
+        # erred by the creep amplitude's error times sens
         creep = drift.creep_offset(t - ep) - drift.scan.creep_at(seen_t - ep)
-        z = np.asarray(body.at) - drift.origin - np.asarray(ctx.belief[rid].at) - creep
-        rows = [(np.array(e), float(z @ e), t - ep, seen_t - ep) for e in ((1.0, 0.0), (0.0, 1.0))]
+        sens = res.creep_sensitivity() if hasattr(res, "creep_sensitivity") else np.zeros(2)
+        z = (np.asarray(body.at) - drift.origin - np.asarray(ctx.belief[rid].at) - creep
+             + drift.creep_error_now() * sens)
+        now = drift.creep_offset(t - ep) + sens
+        rows = [(np.array(e), float(z @ e), t - ep, seen_t - ep, now, float(np.asarray(e) @ cov @ e))
+                for e in ((1.0, 0.0), (0.0, 1.0))]
         return rows, t, (rid, body, cov, t)
     t_now = yield Msg("clock")
     if not ctx.landmarks.within_room(drift, rid, t_now):
@@ -237,7 +258,11 @@ def _bootstrap_rows(ctx: RunContext, kind: str, rid: str, seen_t: float):
     res, placed, _, t = scanned
     feat = ctx.landmarks.features[rid]
     now = drift.creep_offset(t - ep)
+    lc = res.line_creep if res.line_creep is not None else np.zeros((len(placed), 2))
+    eps = drift.creep_error_now()
     rows = [(n, float(n @ (p + o * n - drift.origin - np.asarray(site.point, float) - now
-                           + drift.scan.creep_at(ts - ep))), t - ep, ts - ep)
-            for (p, n, _), o, site, ts in zip(placed, res.offsets, feat.sites, ctx.landmarks.seen[rid])]
+                           + drift.scan.creep_at(ts - ep) + eps * d)), t - ep, ts - ep, now + d,
+             float(n @ ctx.scan_comp @ n) + step.std ** 2)
+            for (p, n, _), o, site, ts, step, d in zip(placed, res.offsets, feat.sites, ctx.landmarks.seen[rid],
+                                                       res.steps, lc)]
     return rows, t, None

@@ -234,6 +234,10 @@ class EdgeScanResult:
         Lines scanned and their samples (instrument time).
     steps : tuple of StepCrossing
         What each line found.
+    line_creep : (m, 2) array or None
+        The creep (nm, nominal amplitude) each line was shifted by to compensate for
+        the time since the first (the run's; see
+        :meth:`~nanoasm.executor.scan_lines.LocalScanResult.creep_sensitivity`).
     """
 
     found: bool
@@ -244,6 +248,7 @@ class EdgeScanResult:
     lines: int
     samples: int
     steps: tuple[StepCrossing, ...] = ()
+    line_creep: np.ndarray | None = None
 
 
 def edge_pattern(sites_scanner: Sequence, reach: float, *, spacing: float = 1.0,

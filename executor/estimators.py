@@ -47,6 +47,8 @@ class DriftEstimator(Protocol):
     uses_landmarks: bool
 
     def offset(self, t: float) -> np.ndarray: ...
+    def compensation_cov(self, t0: float, t1: float) -> np.ndarray: ...
+    def compensation_creep(self, t0: float, t1: float) -> np.ndarray: ...
     def velocity(self) -> np.ndarray: ...
     def unskew(self, at: np.ndarray, tau: float) -> np.ndarray: ...
     def radius(self, t: float, seen, skew_tau: float | None, options: ExecOptions) -> float: ...
@@ -55,10 +57,11 @@ class DriftEstimator(Protocol):
     def doc(self, t: float) -> dict: ...
     def after_plan(self, plan, belief, area) -> None: ...
     def reference_target(self, ctx, t: float, near, obj_id, *, force: bool = False) -> Candidate | None: ...
-    def measure(self, obj_id: str, at, cov, t: float, refs: References, pushed, lost) -> bool | None: ...
+    def measure(self, obj_id: str, at, cov, t: float, refs: References, pushed, lost,
+                creep_sens=None) -> bool | None: ...
     def measure_reference(self, obj_id: str, at, cov, t: float, refs: References, pushed,
-                          lost) -> bool | None: ...
-    def measure_feature(self, feature_id: str, z, H, R, t: float) -> bool: ...
+                          lost, creep_sens=None) -> bool | None: ...
+    def measure_feature(self, feature_id: str, z, H, R, t: float, taus=None, creep_sens=None) -> bool: ...
     def needs_relocalisation(self, t: float, options: ExecOptions) -> tuple[str, str] | None: ...
     def relocalised(self, t: float, offset, cov, refs: References) -> list[str]: ...
     def relocalise_failed(self, t: float) -> None: ...
@@ -91,6 +94,16 @@ class NoDrift:
     def velocity(self) -> np.ndarray:
         return np.zeros(2)
 
+    def compensation_cov(self, t0: float, t1: float) -> np.ndarray:
+        """Covariance (nm²) of the error in ``offset(t1) - offset(t0)``, by which a scan
+        pattern's line at ``t1`` is shifted to see the sample as it lay at ``t0``: none
+        is modelled here (the drift is not estimated, so its bound covers it)."""
+        return np.zeros((2, 2))
+
+    def compensation_creep(self, t0: float, t1: float) -> np.ndarray:
+        """The creep (nm, nominal amplitude) within ``offset(t1) - offset(t0)``: none here."""
+        return np.zeros(2)
+
     def unskew(self, at: np.ndarray, tau: float) -> np.ndarray:
         """A full-scan position with its row's drift taken out (none known here)."""
         return at
@@ -119,16 +132,16 @@ class NoDrift:
         """The reference to scan for drift before a push of ``obj_id`` near ``near`` (None here)."""
         return None
 
-    def measure(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+    def measure(self, obj_id, at, cov, t, refs, pushed, lost, creep_sens=None) -> bool | None:
         """Fold any located object's measured position (scanner frame) in: None (not
         used), True, or False (gated out)."""
         return None
 
-    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost, creep_sens=None) -> bool | None:
         """Fold the measured position of the reference :meth:`reference_target` chose."""
         return None
 
-    def measure_feature(self, feature_id, z, H, R, t) -> bool:
+    def measure_feature(self, feature_id, z, H, R, t, taus=None, creep_sens=None) -> bool:
         """Fold a fixed feature's measurement (never chosen here)."""
         raise TypeError("this estimator takes no fixed features (it never chooses one)")
 
@@ -195,7 +208,7 @@ class Anchor(NoDrift):
             return None
         return Candidate("object", self.anchor[0], np.eye(2), np.eye(2), 0.0, 1.0)
 
-    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost, creep_sens=None) -> bool | None:
         """The anchor found at ``at``: the offset. (Only the anchor's own reference scan
         measures; an object located before its push does not, even if it is the anchor.)"""
         if self.anchor is None or obj_id != self.anchor[0]:

@@ -33,7 +33,7 @@ from .strategy import ExecOptions
 FULL_SCAN_VAR = 4.0
 #: Static parameters of the filter's state after the bootstrap: the full scan's drift
 #: model θ (velocity and its steady change, :class:`~nanoasm.executor.scan_drift.ScanDrift`).
-SCAN_STATICS = 4
+SCAN_STATICS = 4                 # θ's thermal part; ε rides in the filter's learnt creep
 
 
 def filter_params(options: ExecOptions) -> DriftFilterParams:
@@ -68,7 +68,7 @@ class Kalman:
         # the drift the full scan's rows carried (the filter's own velocity follows the
         # drift as it changes later)
         self.scan = ScanDrift(self.epoch, self.params.velocity_std, self.params.creep.amplitude,
-                              self.params.creep.tau)
+                              self.params.creep.tau, creep_std=self.params.creep.amplitude_std)
 
     @property
     def velocity_known(self) -> bool:
@@ -84,9 +84,12 @@ class Kalman:
         moves recorded so far are its creep input, whose amplitude it learns too (a real
         scanner's is known to some ±30 %)."""
         tau = t - self.epoch
-        k = SCAN_STATICS
-        M = np.vstack([self.scan.jacobian(tau), np.hstack([np.eye(2), np.eye(2) * tau]), np.eye(k)])
-        x0 = np.concatenate([np.zeros(4), np.zeros(k)]) + M @ self.scan.theta
+        k, c = SCAN_STATICS, self.params.creep.amplitude
+        # state: thermal offset and velocity at τ, θ's thermal part, the creep amplitude's
+        # error c ε (the filter's creep term carries ε for every move, the scan's too)
+        M = np.vstack([self.scan.thermal_jacobian(tau), self.scan.velocity_jacobian(tau),
+                       np.eye(k, k + 1), np.eye(1, k + 1, k) * c])
+        x0 = M @ self.scan.theta
         P0 = M @ self.scan.cov @ M.T
         P0[:2, :2] += np.eye(2) * 4.0
         P0[2:4, 2:4] += np.eye(2) * 1e-6
@@ -99,12 +102,19 @@ class Kalman:
         """The full scan's drift model ``θ`` and its covariance: the filter's once it
         holds them (after the bootstrap), the bootstrap's before."""
         if self.filter.statics:
-            return self.filter.x[4:4 + SCAN_STATICS], self.filter.P[4:4 + SCAN_STATICS, 4:4 + SCAN_STATICS]
+            idx = [*range(4, 4 + SCAN_STATICS), -1]          # θ's thermal part, then c ε
+            scale = np.ones(len(idx))
+            scale[-1] = 1.0 / self.params.creep.amplitude
+            P = self.filter.P
+            return self.filter.x[idx] * scale, P[np.ix_(idx, idx)] * np.outer(scale, scale)
         return self.scan.theta, self.scan.cov
 
     def static_rows(self, normals, taus) -> np.ndarray:
-        """How components measured against the full scan depend on ``θ``: ``-n_k J(τ_k)``."""
-        return np.array([-np.asarray(n, float) @ self.scan.jacobian(tau) for n, tau in zip(normals, taus)])
+        """How components measured against the full scan depend on the filter's statics
+        ``θ`` and its creep amplitude error ``c ε``: ``-n_k J(τ_k)``, ``ε``'s column per ``c``."""
+        J = np.array([-np.asarray(n, float) @ self.scan.jacobian(tau) for n, tau in zip(normals, taus)])
+        J[:, -1] /= self.params.creep.amplitude
+        return J
 
     # -- the estimate ---------------------------------------------------------------------
     def _bootstrapping(self) -> bool:
@@ -115,7 +125,9 @@ class Kalman:
     def offset(self, t: float) -> np.ndarray:
         if self._bootstrapping():
             tau = t - self.epoch
-            return self.origin + self.scan.jacobian(tau) @ self.scan.theta + self.filter.creep.offset(tau)
+            theta = self.scan.theta
+            return (self.origin + self.scan.thermal_jacobian(tau) @ theta
+                    + (1.0 + theta[-1]) * self.filter.creep.offset(tau))
         return self.origin + np.asarray(self.filter.offset(t).offset, float)
 
     def offset_cov(self, t: float) -> np.ndarray:
@@ -123,6 +135,54 @@ class Kalman:
         if self._bootstrapping():
             return self.scan.offset_cov(t - self.epoch) + self.filter.creep.cov(t - self.epoch)
         return np.asarray(self.filter.offset(self.clamp(t)).cov, float)
+
+    def creep_rel_var(self) -> float:
+        """Variance of the creep amplitude relative to the nominal one, as now known: the
+        filter's learnt amplitude once it runs, the full scan's model's before."""
+        c = self.params.creep.amplitude
+        if self.filter.statics and self.filter.learn_creep and c > 0:
+            return float(self.filter.P[-1, -1]) / (c * c)
+        return float(self.scan.cov[-1, -1])
+
+    def compensation_cov(self, t0: float, t1: float) -> np.ndarray:
+        """Covariance (nm²) of the error in ``offset(t1) - offset(t0)``: the creep
+        modelled between the two at an amplitude known to :meth:`creep_rel_var`, and the
+        velocity's uncertainty over the time between. Just after a long travel the creep
+        runs at tens of nm/s, so a pattern's second line, shifted by it, errs by the
+        amplitude's error times that (20 nm on a 7 µm travel at 27 % off nominal)."""
+        ep = self.epoch
+        d = self.creep_offset(t1 - ep) - self.creep_offset(t0 - ep)
+        dt = t1 - t0
+        if self.filter.statics:
+            vel = self.filter.P[2:4, 2:4]
+        else:
+            vel = self.scan.velocity_at(t1 - ep)[1]
+        return self.creep_rel_var() * np.outer(d, d) + dt * dt * np.asarray(vel, float)
+
+    def compensation_creep(self, t0: float, t1: float) -> np.ndarray:
+        """The creep (nm, at the nominal amplitude) within ``offset(t1) - offset(t0)``:
+        a line shifted by it errs by the amplitude's relative error times this."""
+        return self.creep_offset(t1 - self.epoch) - self.creep_offset(t0 - self.epoch)
+
+    def creep_error_now(self) -> float:
+        """The creep amplitude's relative error as estimated now (what a scan's line
+        compensation used)."""
+        c = self.params.creep.amplitude
+        if self.filter.statics and self.filter.learn_creep and c > 0:
+            return float(self.filter.x[-1]) / c
+        return float(self.scan.theta[-1])
+
+    def _with_creep(self, z, static, creep_sens):
+        """A measurement against the full scan whose scan lines' compensation used the
+        creep amplitude estimated now: ``z`` and ``static`` with that dependence on the
+        amplitude's error (``creep_sens``: nm per unit relative error along each row)."""
+        if creep_sens is None or static is None or not self.filter.learn_creep:
+            return z, static
+        c = self.params.creep.amplitude
+        sens = np.asarray(creep_sens, float) / c
+        static = static.copy()
+        static[:, -1] += sens
+        return np.asarray(z, float) + float(self.filter.x[-1]) * sens, static
 
     def sigma(self, t: float) -> float:
         """Standard deviation (nm) of the offset along its worst direction at ``t``."""
@@ -221,18 +281,20 @@ class Kalman:
         nu = z - mean
         return float(nu @ np.linalg.solve(cov + R, nu)) <= gate_threshold(2, self.params.gate_probability)
 
-    def measure(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
+    def measure(self, obj_id, at, cov, t, refs, pushed, lost, creep_sens=None) -> bool | None:
         """Fold a reference's measured position (scanner frame) into the filter, against
         where the full scan saw it (its row's drift a part of the filter's state): None if
         it is no reference, else whether it agreed. A rejected one moved on its own and
         is no reference from then on; a quarantined one is only checked (re-validated
-        when it agrees)."""
+        when it agrees). ``creep_sens``: how the located position moves per unit relative
+        error of the creep amplitude its scan lines were compensated with."""
         if not refs.is_reference(obj_id, pushed, lost):
             return None
         raw, seen_t = refs.first_seen[obj_id]
         tau = seen_t - self.epoch
         z = np.asarray(at) - self.origin - raw + self.scan.creep_at(tau)
         static = self.static_rows(np.eye(2), [tau, tau])
+        z, static = self._with_creep(z, static, creep_sens)
         R = np.asarray(cov, float) + np.eye(2) * FULL_SCAN_VAR
         ref = self.unskew(raw, tau)
         if obj_id in refs.quarantine:
@@ -248,14 +310,16 @@ class Kalman:
         self.reject(obj_id, t)
         return False
 
-    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost) -> bool | None:
-        return self.measure(obj_id, at, cov, t, refs, pushed, lost)
+    def measure_reference(self, obj_id, at, cov, t, refs, pushed, lost, creep_sens=None) -> bool | None:
+        return self.measure(obj_id, at, cov, t, refs, pushed, lost, creep_sens)
 
-    def measure_feature(self, feature_id: str, z, H, R, t: float, taus=None) -> bool:
+    def measure_feature(self, feature_id: str, z, H, R, t: float, taus=None, creep_sens=None) -> bool:
         """Fold a fixed feature's measured offset components ``z`` along the rows of
         ``H`` (layout frame, nm; covariance ``R``), each against where the full scan saw
-        its site at ``taus`` (s after the epoch); whether the gate accepted it."""
+        its site at ``taus`` (s after the epoch; ``creep_sens`` as for :meth:`measure`,
+        one a row); whether the gate accepted it."""
         static = None if taus is None else self.static_rows(H, taus)
+        z, static = self._with_creep(z, static, creep_sens)
         m = self.filter.measure_projected(self.clamp(t), z, H, R, label=feature_id, static=static)
         if m.accepted:
             self._accepted()

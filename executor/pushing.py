@@ -46,8 +46,8 @@ def _locate_start(ctx: RunContext, obj_id: str):
         found = yield from locate(ctx, obj_id)
     if found is None:
         return None
-    measured, cov, t, _ = found
-    if not fold(ctx, obj_id, measured.at, cov, t):
+    measured, cov, t, res = found
+    if not fold(ctx, obj_id, measured.at, cov, t, scan=res):
         yield Msg("event", (f"{obj_id} moved on its own ({ctx.refs.note(obj_id)})",), {"level": "warn"})
     yield from emit_drift(ctx, t)
     if not relocalised and (yield from keep_track(ctx)):

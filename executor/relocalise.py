@@ -123,27 +123,24 @@ def relocalise(ctx: RunContext, why: str):
         if not reg.ok:
             yield Msg("event", (f"window {k + 1} did not register ({reg.reason})",), {"level": "warn"})
             continue
-        row0 = (y0 - image.origin[1]) / image.pixel_size          # the reference's first row
-        tau = t_full0 + (row0 + 0.5) * line_time - est.epoch
-        t_row0 = t + 0.5 * (t_end - t) / pixels
-        # the drift since the epoch when the window's first row was scanned, less the
-        # drift the full scan's first row of it carried (creep of then taken out)
-        z = off - est.origin + np.asarray(reg.shift, float) + est.scan.creep_at(tau)
-        R = np.eye(2) * (reg.std ** 2 + 1.0)
-        old, since = est.offset(t_row0), est.streak_start
-        forgiven = est.relocalised(t_row0, z, R, tau, ctx.refs)
-        new, cov = est.offset(t_row0), est.offset_cov(t_row0)
+        t_mid, tau, z, creep_cov = _window_offset(est, off, reg.shift, (t, t_end, pixels),
+                                       (t_full0, line_time, (y0 - image.origin[1]) / image.pixel_size,
+                                        (y1 - y0) / image.pixel_size))
+        R = np.eye(2) * (reg.std ** 2 + 1.0) + creep_cov
+        old, since = est.offset(t_mid), est.streak_start
+        forgiven = est.relocalised(t_mid, z, R, tau, ctx.refs)
+        new, cov = est.offset(t_mid), est.offset_cov(t_mid)
         marks.forgive(forgiven)
         ctx.belief.lost.difference_update(forgiven)      # references missed for the drift's jump
         _correct_beliefs(ctx, new - old, since)
         ctx.ledger.purposes["relocalise"] += t_end - t_start
-        ctx.log_drift(t_row0)
+        ctx.log_drift(t_mid)
         shift = np.asarray(new - old)
         yield Msg("event", (f"relocalised by window {k + 1} at ({0.5 * (x0 + x1):.0f}, {0.5 * (y0 + y1):.0f}) "
                             f"(match {reg.score:.2f}): the estimate moved {shift[0]:+.0f}, {shift[1]:+.0f} nm "
                             f"(± {math.sqrt(cov[0, 0]):.1f})",))
         if est.emits:
-            yield Msg("emit", ("drift", est.doc(t_row0)))
+            yield Msg("emit", ("drift", est.doc(t_mid)))
         return True
     t_end = yield Msg("clock")
     ctx.ledger.purposes["relocalise"] += t_end - t_start
@@ -151,6 +148,33 @@ def relocalise(ctx: RunContext, why: str):
     yield Msg("event", ("relocalisation failed: no window registered; going on with the estimate as it was",),
               {"level": "error"})
     return False
+
+
+def _window_offset(est, off, shift, new_rows, old_rows) -> tuple[float, float, np.ndarray, np.ndarray]:
+    """What a registered window measures: ``(t, τ, z, cov)`` with ``z`` (nm) the drift since
+    the epoch at ``t``, the middle of the new scan, less the full scan's at ``τ``, the
+    middle of the window's rows in it (creep then taken out).
+
+    The registration's shift is the content-weighted mean over rows of what each row of
+    the new scan (placed with the estimate ``off``) is displaced by against the same
+    row of the full scan: it compares the scans' middles, where a drift linear over the
+    rows (a velocity, alike or not in the two) equals its mean. Creep is not linear: the
+    moves made just before the new scan still creep fast through its first rows (tens
+    of nm over a 200-row window), so the mean of the modelled creep over the rows, less
+    its value at the middle, is taken out too. ``new_rows``: ``(start, end, rows)`` of
+    the new scan, instrument s; ``old_rows``: ``(first line's start, line time, first
+    row, rows)`` of the window in the full scan; ``cov`` (nm²): what the creep taken out
+    may err by, at the amplitude's uncertainty."""
+    t0, t1, n = new_rows
+    t_full0, line_time, row0, rows = old_rows
+    s = t0 + (np.arange(n) + 0.5) * (t1 - t0) / n - est.epoch
+    t_mid = t0 + 0.5 * (t1 - t0)
+    taus = t_full0 + (row0 + np.arange(max(int(round(rows)), 1)) + 0.5) * line_time - est.epoch
+    tau = t_full0 + (row0 + 0.5 * rows) * line_time - est.epoch
+    creep_now = np.mean([est.creep_offset(v) for v in s], axis=0) - est.creep_offset(t_mid - est.epoch)
+    creep_then = np.mean([est.scan.creep_at(v) for v in taus], axis=0)
+    z = off - est.origin + np.asarray(shift, float) + creep_then - est.creep_scale() * creep_now
+    return t_mid, float(tau), z, est.creep_rel_var() * np.outer(creep_now, creep_now)
 
 
 def _centre(w) -> np.ndarray:

@@ -6,13 +6,18 @@ frame is the scanner frame then). Every position taken from the full scan (an ob
 a fixed feature's, a relocalisation window's) is put back by ``D(τ)``, for the whole
 run; the drift filter's own state follows the drift as it goes on changing later.
 
-The model over the scan is ``D(τ) = v τ + a τ²/2 + creep(τ)``: a velocity ``v`` that
-may change at a steady rate ``a`` (a drifting stage settles over hours: the velocity
-changes by a few hundredths of nm/s in ten minutes), and the creep of the scanner
-moves made before the scan ended (the drift filter's creep history folds old moves into
-a constant valid only from then on, so these are kept apart). ``θ = (v, a)`` starts
-from a prior and is measured by Bayesian least squares: scanning a reference again at
-``t`` gives its component along ``n`` of ``D(t) − D(τ)``, linear in ``θ``.
+The model over the scan is ``D(τ) = v τ + a τ²/2 + (1 + ε) creep(τ)``: a velocity
+``v`` that may change at a steady rate ``a`` (a drifting stage settles over hours: the
+velocity changes by a few hundredths of nm/s in ten minutes), and the creep of the
+scanner moves made before the scan ended (the drift filter's creep history folds old
+moves into a constant valid only from then on, so these are kept apart), at an
+amplitude known only to a relative error ``ε`` (a real scanner's to some ±30 %). The
+creep of the travels to the references scanned again is a few hundred nm on a wide
+area, so a model without ``ε`` takes the error of its amplitude for velocity. ``θ = (v,
+a, ε)`` starts from a prior and is measured by Bayesian least squares: scanning a
+reference again at ``t`` gives its component along ``n`` of ``D(t) − D(τ)`` (the creep
+at ``t`` of every move so far), linear in ``θ``; the drift filter then carries ``ε`` as
+its learnt creep amplitude error.
 """
 
 from __future__ import annotations
@@ -27,27 +32,43 @@ ACCELERATION_STD = 5e-5
 KNOWN_VELOCITY_STD = 0.05
 
 
+#: Number of the model's parameters ``θ = (vx, vy, ax, ay, ε)``.
+PARAMETERS = 5
+
+
 class ScanDrift:
-    """``θ = (vx, vy, ax, ay)`` (nm/s, nm/s²) with its covariance, and the moves made
+    """``θ = (vx, vy, ax, ay, ε)`` (nm/s, nm/s², 1) with its covariance, and the moves made
     before the full scan ended (``moves``: rows of ``(t, sx, sy)``, instrument s and nm).
     Times ``τ`` are s after the epoch ``epoch``."""
 
     def __init__(self, epoch: float, velocity_std: float, creep_amplitude: float, creep_tau: float,
-                 acceleration_std: float = ACCELERATION_STD):
+                 acceleration_std: float = ACCELERATION_STD, creep_std: float = 0.0):
         self.epoch = float(epoch)
-        self.theta = np.zeros(4)
-        self.cov = np.diag([velocity_std ** 2] * 2 + [acceleration_std ** 2] * 2)
+        self.theta = np.zeros(PARAMETERS)
+        rel = creep_std / creep_amplitude if creep_amplitude > 0 else 0.0
+        self.cov = np.diag([velocity_std ** 2] * 2 + [acceleration_std ** 2] * 2 + [max(rel, 1e-9) ** 2])
         self.creep = (float(creep_amplitude), float(creep_tau))
         self.moves = np.zeros((0, 3))
         self.ended = False                   # the full scan has ended
-        self.info = np.zeros((4, 4))         # what the references measured, for the posterior
-        self.eta = np.zeros(4)
+        self.info = np.zeros((PARAMETERS, PARAMETERS))   # what the references measured
+        self.eta = np.zeros(PARAMETERS)
         self._prior = self.cov.copy()
 
     @staticmethod
-    def jacobian(tau: float) -> np.ndarray:
-        """``∂D(τ)/∂θ``, (2, 4)."""
-        return np.hstack([np.eye(2) * tau, np.eye(2) * 0.5 * tau * tau])
+    def thermal_jacobian(tau: float) -> np.ndarray:
+        """``∂D(τ)/∂θ`` of the thermal part alone (``ε``'s column zero), (2, 5)."""
+        return np.hstack([np.eye(2) * tau, np.eye(2) * 0.5 * tau * tau, np.zeros((2, 1))])
+
+    @staticmethod
+    def velocity_jacobian(tau: float) -> np.ndarray:
+        """``∂v(τ)/∂θ``: the thermal drift velocity at ``τ``, (2, 5)."""
+        return np.hstack([np.eye(2), np.eye(2) * tau, np.zeros((2, 1))])
+
+    def jacobian(self, tau: float) -> np.ndarray:
+        """``∂D(τ)/∂θ``, (2, 5): ``ε``'s column is the nominal creep of the scan's moves."""
+        J = self.thermal_jacobian(tau)
+        J[:, 4] = self.creep_at(tau)
+        return J
 
     @property
     def known(self) -> bool:
@@ -80,7 +101,7 @@ class ScanDrift:
 
     def velocity_at(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
         """The velocity (nm/s) at ``τ`` and its covariance."""
-        J = np.hstack([np.eye(2), np.eye(2) * tau])
+        J = self.velocity_jacobian(tau)
         return J @ self.theta, J @ self.cov @ J.T
 
     def scan_ended(self, moves) -> None:
@@ -88,11 +109,14 @@ class ScanDrift:
         self.moves = np.array([[t, s[0], s[1]] for t, s in moves], float).reshape(-1, 3)
         self.ended = True
 
-    def measure(self, n, z: float, tau1: float, tau0: float, var: float) -> None:
-        """A reference seen at ``τ0`` in the full scan and at ``τ1`` again: ``z`` (nm, its
-        creep taken out) is the component along unit ``n`` of ``D(τ1) − D(τ0)``, with
-        variance ``var`` (nm²)."""
-        h = np.asarray(n, float) @ (self.jacobian(tau1) - self.jacobian(tau0))
+    def measure(self, n, z: float, tau1: float, tau0: float, var: float, creep1=None) -> None:
+        """A reference seen at ``τ0`` in the full scan and at ``τ1`` again: ``z`` (nm, the
+        nominal creep taken out) is the component along unit ``n`` of ``D(τ1) − D(τ0)``,
+        with variance ``var`` (nm²). ``creep1``: the nominal creep (nm) at ``τ1`` of every
+        move made so far; by default the scan's moves alone."""
+        J1 = self.thermal_jacobian(tau1)
+        J1[:, 4] = self.creep_at(tau1) if creep1 is None else np.asarray(creep1, float)
+        h = np.asarray(n, float) @ (J1 - self.jacobian(tau0))
         self.info += np.outer(h, h) / var
         self.eta += h * z / var
         self.cov = np.linalg.inv(np.linalg.inv(self._prior) + self.info)
@@ -109,6 +133,17 @@ class ScanDrift:
         out = cls(state["epoch"], 1.0, *state["creep"])
         out.theta = np.asarray(state["theta"], float)
         out.cov = np.asarray(state["cov"], float)
+        if out.theta.size < PARAMETERS:          # a checkpoint from before ε: ε taken as 0, known
+            grow = PARAMETERS - out.theta.size
+
+            def pad(a):
+                a = np.pad(np.asarray(a, float), (0, grow))
+                a[-grow:, -grow:] += np.eye(grow) * 1e-18
+                return a.tolist()
+
+            out.theta, out.cov = np.append(out.theta, np.zeros(grow)), np.asarray(pad(out.cov))
+            state = {**state, "prior": pad(state["prior"]), "info": pad(state["info"]),
+                     "eta": np.append(np.asarray(state["eta"], float), np.zeros(grow)).tolist()}
         out.moves = np.asarray(state["moves"], float).reshape(-1, 3)
         out._prior = np.asarray(state["prior"], float)
         out.info, out.eta = np.asarray(state["info"], float), np.asarray(state["eta"], float)

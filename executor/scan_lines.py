@@ -298,6 +298,10 @@ class LocalScanResult(_Accounting):
         Rod length and its 1-σ (nm).
     lines : tuple of LineOutcome
         Every line scanned, in order.
+    line_creep : (k, 2) array or None
+        For each line, the creep (nm, at the nominal amplitude) by which the run shifted
+        it to compensate for the time since the pattern's first line (see
+        :meth:`creep_sensitivity`); None where no creep is modelled.
     """
 
     pattern: str
@@ -310,6 +314,25 @@ class LocalScanResult(_Accounting):
     length: float | None = None
     length_std: float | None = None
     lines: tuple[LineOutcome, ...] = ()
+    line_creep: np.ndarray | None = None
+
+    def creep_sensitivity(self) -> np.ndarray:
+        """How far (nm) the centre moves per unit relative error of the creep amplitude
+        that compensated the lines, (2,). A line along ``u`` measures the centre's
+        component along ``u``; shifted by ``(1 + ε̂) d`` while the sample crept ``(1 + ε) d``,
+        it sees the object ``(ε − ε̂) d`` off, and the centre, fitted from the lines that
+        found the object, carries ``(ε − ε̂)`` times the least-squares blend of their
+        ``u uᵀ d``. Zero where nothing was compensated."""
+        if self.line_creep is None:
+            return np.zeros(2)
+        A, b = np.zeros((2, 2)), np.zeros(2)
+        for outcome, d in zip(self.lines, self.line_creep):
+            if outcome.edges.found:
+                u = outcome.line.direction
+                P = np.outer(u, u)
+                A += P
+                b += P @ np.asarray(d, float)
+        return np.linalg.pinv(A) @ b
 
     @property
     def std(self) -> float | None:

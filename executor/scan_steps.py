@@ -35,6 +35,8 @@ def run_pattern(ctx: RunContext, pattern):
     travel0 = led.times["travel"]
     led.counts["local_scans"] += 1
     ctx.scan_ref = None
+    ctx.scan_comp = np.zeros((2, 2))
+    ctx.scan_creep = []
     try:
         line = next(pattern)
         while True:
@@ -42,6 +44,10 @@ def run_pattern(ctx: RunContext, pattern):
             line = pattern.send(profile)
     except StopIteration as stop:
         result = stop.value
+    if getattr(result, "cov", None) is not None:     # what the lines' compensation may err by
+        result = replace(result, cov=np.asarray(result.cov, float) + ctx.scan_comp)
+    if hasattr(result, "line_creep") and ctx.scan_creep:
+        result = replace(result, line_creep=np.array(ctx.scan_creep, float).reshape(-1, 2))
     t1 = yield Msg("clock")
     led.times["local_scan"] += t1 - t0 - (led.times["travel"] - travel0)
     return result
@@ -54,12 +60,17 @@ def scan_line(ctx: RunContext, a: np.ndarray, b: np.ndarray, n: int):
     The lines of one pattern are drift-compensated: each is shifted by the offset
     predicted since the pattern's first line (``ctx.scan_ref``), so the pattern sees the
     sample as it lay then, however fast creep moves it after a travel, and its result
-    is converted with the offset of that time."""
+    is converted with the offset of that time. What that shift may err by is kept in
+    ``ctx.scan_comp`` (the worst line's) and added to the pattern's result."""
     yield from approach(ctx, a)
     t_line = yield Msg("clock")
     if ctx.scan_ref is None:
         ctx.scan_ref = t_line
     shift = ctx.offset(t_line) - ctx.offset(ctx.scan_ref)
+    comp = ctx.drift.compensation_cov(ctx.scan_ref, t_line)
+    ctx.scan_creep.append(ctx.drift.compensation_creep(ctx.scan_ref, t_line))
+    if np.trace(comp) > np.trace(ctx.scan_comp):
+        ctx.scan_comp = comp
     a, b = a + shift, b + shift
     lo, hi = ctx.config.lower[:2], ctx.config.upper[:2]
     s = np.linspace(0.0, 1.0, n)

@@ -981,3 +981,26 @@ def test_information_is_the_offsets_trace_reduction_a_measurement_would_bring():
     before = f.offset(0.0).cov
     f.measure_projected(0.0, [0.0], [[1.0, 0.0]], [[4.0]])
     assert np.trace(before) - np.trace(f.offset(0.0).cov) == pytest.approx(100 - 400 / 104)
+
+
+def test_the_creep_amplitude_error_may_come_with_the_prior_correlated():
+    """x0 one longer than 4 + statics: δc's prior is given with the rest (correlated),
+    not appended with ``creep.amplitude_std``."""
+    nominal = CreepModelParams(amplitude=0.01, tau=0.1, amplitude_std=0.003)
+    P0 = np.diag([4.0, 4.0, 1e-4, 1e-4, 1e-2, 4e-6])
+    P0[0, 5] = P0[5, 0] = 0.003           # the offset's error goes with δc's
+    f = DriftFilter(DriftFilterParams(creep=nominal), x0=np.array([1, 2, 0, 0, 0.1, 0.001]), P0=P0,
+                    statics=1, learn_creep=True)
+    assert f.statics == 2 and f.x.shape == (6,) and f.x[-1] == pytest.approx(0.001)
+    np.testing.assert_allclose(f.P, P0, atol=1e-12)
+    f.record_move(0.0, (5000.0, 0.0))
+    # a measurement of δc's own effect beyond the creep now (the extra column) moves δc
+    before, S = f.x[-1], np.array([[0.0, 500.0]])
+    mean, _ = f.projected(10.0, [[1.0, 0.0]], S)
+    m = f.measure_projected(10.0, mean + 3.0, [[1.0, 0.0]], [[1.0]], static=S)
+    after, _ = f.projected(10.0, [[1.0, 0.0]], S)
+    assert m.accepted and f.x[-1] != before and abs(after - (mean + 3.0)) < 1.0
+    with pytest.raises(ValueError, match="static"):
+        f.measure_projected(20.0, [0.0], [[1.0, 0.0]], [[1.0]], static=np.zeros((1, 3)))
+    back = DriftFilter.from_state(f.params, f.state_dict())
+    assert back.statics == 2 and np.allclose(back.x, f.x) and np.allclose(back.P, f.P)

@@ -1,0 +1,133 @@
+"""The full scan's drift model with the creep amplitude's error (executor/scan_drift.py),
+the creep a scan pattern's line compensation carries (LocalScanResult.creep_sensitivity)
+and what a registered relocalisation window measures (relocalise._window_offset)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nanoasm.drift.creep import creep_offset
+from nanoasm.executor.edges import Edges
+from nanoasm.executor.relocalise import _window_offset
+from nanoasm.executor.scan_drift import PARAMETERS, ScanDrift
+from nanoasm.executor.scan_lines import LineOutcome, LocalScanResult, ScanLine
+
+AMP, TAU = 0.01, 0.1
+
+
+def _bootstrap(truth_eps: float, creep_std: float, seed: int = 3):
+    """References seen during a 1000 s scan (no moves then) scanned again after long
+    travels whose creep is at ``1 + truth_eps`` times the nominal amplitude; returns the
+    model and the true velocity."""
+    rng = np.random.default_rng(seed)
+    v = np.array([0.3, -0.2])
+    sd = ScanDrift(0.0, 0.5, AMP, TAU, creep_std=creep_std)
+    sd.scan_ended([])
+    moves, t = [], 1000.0
+    for k in range(8):
+        step = np.array([6000.0, 4000.0]) * (1 if k % 2 else -1) + rng.normal(0, 500, 2)
+        moves.append((t, step))
+        t += 2.0
+        nominal = creep_offset(t, [m[0] for m in moves], [m[1] for m in moves], AMP, TAU)
+        tau0 = 100.0 + 110.0 * k
+        drift = v * (t - tau0) + (1.0 + truth_eps) * nominal        # D(t) - D(τ0)
+        for e in np.eye(2):
+            z = float(e @ (drift - nominal)) + rng.normal(0, 1.0)   # the nominal creep taken out
+            sd.measure(e, z, t, tau0, 1.0, creep1=nominal)
+    return sd, v
+
+
+def test_the_scan_model_learns_the_creep_amplitude_and_so_the_velocity():
+    """Creep 30 % over nominal on 7 µm travels: with ε the velocity comes out right;
+    without it (ε pinned to 0) the amplitude's error is taken for velocity."""
+    sd, v = _bootstrap(0.3, creep_std=0.002)
+    assert sd.theta.shape == (PARAMETERS,)
+    assert sd.theta[-1] == pytest.approx(0.3, abs=0.03)
+    assert np.abs(sd.theta[:2] - v).max() < 0.005
+    eps_std = np.sqrt(sd.cov[-1, -1])
+    assert abs(sd.theta[-1] - 0.3) < 3 * eps_std
+    pinned, _ = _bootstrap(0.3, creep_std=0.0)
+    assert np.abs(pinned.theta[:2] - v).max() > 2 * np.abs(sd.theta[:2] - v).max()
+
+
+def test_a_checkpoint_from_before_the_creep_error_resumes_with_it_zero_and_known():
+    sd, _ = _bootstrap(0.3, creep_std=0.002)
+    state = sd.state_dict()
+    old = {**state, "theta": state["theta"][:4], "cov": [r[:4] for r in state["cov"][:4]],
+           "prior": [r[:4] for r in state["prior"][:4]], "info": [r[:4] for r in state["info"][:4]],
+           "eta": state["eta"][:4]}
+    back = ScanDrift.from_state(old)
+    assert back.theta.shape == (PARAMETERS,) and back.theta[-1] == 0.0
+    assert back.cov[-1, -1] < 1e-12
+    np.testing.assert_allclose(back.theta[:4], state["theta"][:4])
+    same = ScanDrift.from_state(state)
+    np.testing.assert_allclose(same.theta, sd.theta)
+    np.testing.assert_allclose(same.cov, sd.cov)
+
+
+def _outcome(a, b, found=True) -> LineOutcome:
+    line = ScanLine(tuple(a), tuple(b), 50, "L")
+    edges = Edges(found, "found" if found else "nothing above the level",
+                  10.0 if found else None, 20.0 if found else None, 0.5 if found else None,
+                  0.5 if found else None, 60.0 if found else None, 30.0, 0.3, int(found))
+    return LineOutcome(line, edges)
+
+
+def test_a_patterns_centre_carries_each_lines_creep_along_that_line():
+    """A line along x measures x, one along y measures y: the centre's sensitivity to the
+    amplitude's error is the x line's creep along x and the y line's along y; a line
+    that found nothing measures nothing."""
+    lines = (_outcome((0, 0), (100, 0)), _outcome((50, -50), (50, 50)), _outcome((0, 30), (100, 30), False))
+    creep = np.array([[0.0, 0.0], [7.0, 20.0], [50.0, 50.0]])
+    res = LocalScanResult("particle_before", True, "found", (50.0, 0.0), np.eye(2), lines=lines,
+                          line_creep=creep)
+    np.testing.assert_allclose(res.creep_sensitivity(), [0.0, 20.0], atol=1e-12)
+    # two lines along x at different times: their mean along x, nothing along y
+    both = LocalScanResult("particle_before", True, "found", (50.0, 0.0), np.eye(2),
+                           lines=lines[:1] * 2, line_creep=np.array([[4.0, 9.0], [8.0, 9.0]]))
+    np.testing.assert_allclose(both.creep_sensitivity(), [6.0, 0.0], atol=1e-12)
+    assert not np.any(LocalScanResult("x", True, "found", (0, 0), np.eye(2), lines=lines).creep_sensitivity())
+
+
+class _Est:
+    """What _window_offset asks of an estimator: creep of recent moves, none in the scan."""
+
+    epoch = 0.0
+    origin = np.array([1000.0, 2000.0])
+
+    def __init__(self, moves):
+        self.moves = moves
+        self.scan = self
+
+    def creep_offset(self, tau):
+        return creep_offset(tau, [m[0] for m in self.moves], [m[1] for m in self.moves], AMP, TAU)
+
+    def creep_at(self, tau):
+        return np.zeros(2)
+
+    def creep_scale(self):
+        return 1.0
+
+    def creep_rel_var(self):
+        return 0.04
+
+
+def test_a_window_measures_the_middle_of_its_scan_less_the_creep_curvature_over_it():
+    """A window scanned right after a 5 µm travel: the rows see the sample creep tens of
+    nm; the registration's mean shift is the mean over rows, which is the drift at the
+    scan's middle only once the creep's curvature over the rows is taken out."""
+    est = _Est([(99.0, np.array([5000.0, 0.0]))])
+    v = np.array([0.2, 0.1])
+    t0, t1, n = 100.0, 300.0, 200
+    rows = t0 + (np.arange(n) + 0.5) * (t1 - t0) / n
+    truth = lambda t: v * t + est.creep_offset(t)               # the offset since the epoch
+    tau_rows = 500.0 + (np.arange(n) + 0.5)                      # the window's rows in the full scan
+    off = est.origin + truth(t0) + np.array([30.0, -12.0])       # where the estimate put the window
+    shift = np.mean([est.origin + truth(s) - off - v * tr for s, tr in zip(rows, tau_rows)], axis=0)
+    t_mid, tau, z, cov = _window_offset(est, off, shift, (t0, t1, n), (0.0, 1.0, 500.0, n))
+    assert t_mid == pytest.approx(200.0) and tau == pytest.approx(600.0)
+    np.testing.assert_allclose(z, truth(t_mid) - v * tau, atol=0.05)
+    # the first row's time, as before, would be off by the creep over the rows
+    assert np.abs(z - (truth(t0) - v * 500.5)).max() > 10.0
+    assert cov[0, 0] > 0 and cov[1, 1] == pytest.approx(0.0)
