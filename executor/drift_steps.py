@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import creep_terms
 from .context import RunContext
 from .engine import Msg
 from .edge_scan import edge_pattern
@@ -244,7 +245,7 @@ def _bootstrap_rows(ctx: RunContext, kind: str, rid: str, seen_t: float):
         creep = drift.creep_offset(t - ep) - drift.scan.creep_at(seen_t - ep)
         sens = res.creep_sensitivity() if hasattr(res, "creep_sensitivity") else np.zeros(2)
         z = (np.asarray(body.at) - drift.origin - np.asarray(ctx.belief[rid].at) - creep
-             + drift.creep_error_now() * sens)
+             + creep_terms.error_now(drift) * sens)
         now = drift.creep_offset(t - ep) + sens
         rows = [(np.array(e), float(z @ e), t - ep, seen_t - ep, now, float(np.asarray(e) @ cov @ e))
                 for e in ((1.0, 0.0), (0.0, 1.0))]
@@ -259,7 +260,7 @@ def _bootstrap_rows(ctx: RunContext, kind: str, rid: str, seen_t: float):
     feat = ctx.landmarks.features[rid]
     now = drift.creep_offset(t - ep)
     lc = res.line_creep if res.line_creep is not None else np.zeros((len(placed), 2))
-    eps = drift.creep_error_now()
+    eps = creep_terms.error_now(drift)
     rows = [(n, float(n @ (p + o * n - drift.origin - np.asarray(site.point, float) - now
                            + drift.scan.creep_at(ts - ep) + eps * d)), t - ep, ts - ep, now + d,
              float(n @ ctx.scan_comp @ n) + step.std ** 2)

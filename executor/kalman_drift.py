@@ -23,10 +23,12 @@ import numpy as np
 from nanoasm.drift import DriftFilter, DriftFilterParams, gate_threshold
 from nanoasm.drift.creep import CreepingOffset, CreepModelParams
 
+from . import creep_terms
 from .reference_choice import Candidate, best, object_candidates
 from .references import References
 from .scan_drift import ScanDrift
 from .strategy import ExecOptions
+from .trust import Trust
 
 #: Variance (nm² per axis) of an object's position in the first full scan, its row's
 #: drift aside (identification measured 0.28 nm on centres; 2 nm covers pixel effects).
@@ -59,12 +61,7 @@ class Kalman:
         self.filter = DriftFilter(self.params, epoch=self.epoch)
         self.move_log: list[tuple[float, np.ndarray]] = []   # replayed when restarted
         self.creep_anchor: np.ndarray | None = None   # where the last recorded move ended, nm
-        self.rejections = 0                           # references rejected in a row
-        self.rejected: list[str] = []                 # ... which (re-admitted if the drift jumped)
-        self.streak_start: float | None = None        # ... since when
-        self.pause = 0.0                              # the stand-still of the last resume, s
-        self.failed_at: float | None = None           # when a relocalisation last failed
-        self.relocalised_at: float | None = None      # ... and last succeeded
+        self.trust = Trust()                          # references rejected in a row, relocalisations
         # the drift the full scan's rows carried (the filter's own velocity follows the
         # drift as it changes later)
         self.scan = ScanDrift(self.epoch, self.params.velocity_std, self.params.creep.amplitude,
@@ -136,53 +133,13 @@ class Kalman:
             return self.scan.offset_cov(t - self.epoch) + self.filter.creep.cov(t - self.epoch)
         return np.asarray(self.filter.offset(self.clamp(t)).cov, float)
 
-    def creep_rel_var(self) -> float:
-        """Variance of the creep amplitude relative to the nominal one, as now known: the
-        filter's learnt amplitude once it runs, the full scan's model's before."""
-        c = self.params.creep.amplitude
-        if self.filter.statics and self.filter.learn_creep and c > 0:
-            return float(self.filter.P[-1, -1]) / (c * c)
-        return float(self.scan.cov[-1, -1])
-
     def compensation_cov(self, t0: float, t1: float) -> np.ndarray:
-        """Covariance (nm²) of the error in ``offset(t1) - offset(t0)``: the creep
-        modelled between the two at an amplitude known to :meth:`creep_rel_var`, and the
-        velocity's uncertainty over the time between. Just after a long travel the creep
-        runs at tens of nm/s, so a pattern's second line, shifted by it, errs by the
-        amplitude's error times that (20 nm on a 7 µm travel at 27 % off nominal)."""
-        ep = self.epoch
-        d = self.creep_offset(t1 - ep) - self.creep_offset(t0 - ep)
-        dt = t1 - t0
-        if self.filter.statics:
-            vel = self.filter.P[2:4, 2:4]
-        else:
-            vel = self.scan.velocity_at(t1 - ep)[1]
-        return self.creep_rel_var() * np.outer(d, d) + dt * dt * np.asarray(vel, float)
+        """Covariance (nm²) of the error in ``offset(t1) - offset(t0)`` (:mod:`.creep_terms`)."""
+        return creep_terms.compensation_cov(self, t0, t1)
 
     def compensation_creep(self, t0: float, t1: float) -> np.ndarray:
-        """The creep (nm, at the nominal amplitude) within ``offset(t1) - offset(t0)``:
-        a line shifted by it errs by the amplitude's relative error times this."""
+        """The creep (nm, nominal amplitude) within ``offset(t1) - offset(t0)``."""
         return self.creep_offset(t1 - self.epoch) - self.creep_offset(t0 - self.epoch)
-
-    def creep_error_now(self) -> float:
-        """The creep amplitude's relative error as estimated now (what a scan's line
-        compensation used)."""
-        c = self.params.creep.amplitude
-        if self.filter.statics and self.filter.learn_creep and c > 0:
-            return float(self.filter.x[-1]) / c
-        return float(self.scan.theta[-1])
-
-    def _with_creep(self, z, static, creep_sens):
-        """A measurement against the full scan whose scan lines' compensation used the
-        creep amplitude estimated now: ``z`` and ``static`` with that dependence on the
-        amplitude's error (``creep_sens``: nm per unit relative error along each row)."""
-        if creep_sens is None or static is None or not self.filter.learn_creep:
-            return z, static
-        c = self.params.creep.amplitude
-        sens = np.asarray(creep_sens, float) / c
-        static = static.copy()
-        static[:, -1] += sens
-        return np.asarray(z, float) + float(self.filter.x[-1]) * sens, static
 
     def sigma(self, t: float) -> float:
         """Standard deviation (nm) of the offset along its worst direction at ``t``."""
@@ -294,7 +251,7 @@ class Kalman:
         tau = seen_t - self.epoch
         z = np.asarray(at) - self.origin - raw + self.scan.creep_at(tau)
         static = self.static_rows(np.eye(2), [tau, tau])
-        z, static = self._with_creep(z, static, creep_sens)
+        z, static = creep_terms.with_creep(self, z, static, creep_sens)
         R = np.asarray(cov, float) + np.eye(2) * FULL_SCAN_VAR
         ref = self.unskew(raw, tau)
         if obj_id in refs.quarantine:
@@ -319,7 +276,7 @@ class Kalman:
         its site at ``taus`` (s after the epoch; ``creep_sens`` as for :meth:`measure`,
         one a row); whether the gate accepted it."""
         static = None if taus is None else self.static_rows(H, taus)
-        z, static = self._with_creep(z, static, creep_sens)
+        z, static = creep_terms.with_creep(self, z, static, creep_sens)
         m = self.filter.measure_projected(self.clamp(t), z, H, R, label=feature_id, static=static)
         if m.accepted:
             self._accepted()
@@ -328,59 +285,37 @@ class Kalman:
         return m.accepted
 
     def reject(self, label: str, t: float) -> None:
-        """A reference was rejected, or not found where it should be, at ``t``; the
-        streak counts different references (one reference out of place again and again
-        is its own trouble, not the estimate's)."""
-        if not self.rejected:
-            self.streak_start = float(t)
-        self.rejected.append(label)
-        self.rejections = len(set(self.rejected))
+        """A reference was rejected, or not found where it should be, at ``t``."""
+        self.trust.reject(label, t)
 
     def _accepted(self) -> None:
-        self.rejections, self.rejected, self.streak_start = 0, [], None
+        self.trust.accept()
 
-    # -- relocalisation -------------------------------------------------------------------
+    # -- relocalisation (when: :class:`~nanoasm.executor.trust.Trust`) ---------------------
     def needs_relocalisation(self, t: float, options: ExecOptions) -> tuple[str, str] | None:
-        """Why the estimate must be relocalised before going on, as ``(kind, text)``
-        with kind "pause", "rejections" or "sigma" (None: it need not, or a
-        relocalisation failed less than ``relocalise_pause`` ago)."""
-        if self.failed_at is not None and t - self.failed_at < options.relocalise_pause:
-            return None
-        if self.pause >= options.relocalise_pause:
-            return "pause", f"resumed after {self.pause:.0f} s"
-        if self.rejections >= options.relocalise_rejections:
-            return "rejections", (f"{self.rejections} references in a row ({', '.join(self.rejected)}) "
-                                  f"were not where the estimate put them")
-        s = self.sigma(t)
-        recent = self.relocalised_at is not None and t - self.relocalised_at < options.relocalise_pause
-        if s > options.relocalise_sigma and not recent:
-            return "sigma", f"the drift estimate's σ reached {s:.0f} nm"
-        return None
+        """Why the estimate must be relocalised before going on (:meth:`Trust.needs`)."""
+        return self.trust.needs(t, self.sigma(t), options)
 
     def resumed(self, pause: float) -> None:
         """The run resumes after standing still ``pause`` s."""
-        self.pause = float(pause)
+        self.trust.pause = float(pause)
 
     def relocalised(self, t: float, z, R, tau: float, refs: References) -> list[str]:
         """Start the offset afresh at ``t`` from a registration: ``z`` (nm) is the drift
-        since the epoch less the full scan's at ``tau`` (where the window's first row
-        lies), covariance ``R``. The references rejected in the streak that led here did
-        not move: the drift did; they are re-admitted (and returned)."""
+        since the epoch less the full scan's at ``tau``, covariance ``R``. The references
+        rejected in the streak that led here are re-admitted (and returned)."""
         t = self.clamp(t)
         self.filter.forget_offset(t, 1e4)
         self.filter.measure_projected(t, z, np.eye(2), R, label="relocalisation",
                                       static=self.static_rows(np.eye(2), [tau, tau]))
-        forgiven = sorted(set(self.rejected))
+        forgiven = self.trust.relocalised(t)
         for label in forgiven:
             refs.gated.discard(label)
-        self._accepted()
-        self.pause, self.failed_at, self.relocalised_at = 0.0, None, float(t)
         return forgiven
 
     def relocalise_failed(self, t: float) -> None:
         """No window registered at ``t``: go on as before, without retrying for a while."""
-        self._accepted()
-        self.pause, self.failed_at = 0.0, float(t)
+        self.trust.failed(t)
 
     # -- creep ----------------------------------------------------------------------------
     def moved_to(self, xy, t: float, start=None) -> None:
@@ -402,24 +337,13 @@ class Kalman:
     def pending_travel(self, dac, current, config) -> list:
         """The move a streamed path's own travel will be recorded as: ``[(t_end, step)]``,
         or ``[]`` if it is too short to creep."""
-        from .trajectory import PUSH, TRAVEL
-
-        prof = dac.profile
-        travel = np.flatnonzero(prof.kind == TRAVEL)
-        push = np.flatnonzero(prof.kind == PUSH)
-        travel = travel[travel < push[0]] if push.size else travel
-        if not travel.size:
+        end = creep_terms.final_travel(dac, config)
+        if end is None:
             return []
-        k = int(prof.ends[travel[-1]])
-        if k < 1:
-            return []
-        end = dac.render(np.array([k])).nm[0, :2]
         anchor = (self.creep_anchor if self.creep_anchor is not None
                   else config.codes_to_nm(np.asarray(current))[:2])
-        step = end - anchor
-        if math.hypot(*step) < self.filter.params.creep.min_step:
-            return []
-        return [(dac.t0 + k / config.sample_rate, step)]
+        step = end[1] - anchor
+        return [] if math.hypot(*step) < self.filter.params.creep.min_step else [(end[0], step)]
 
     def creep_scale(self) -> float:
         """The creep amplitude as learnt over the nominal one, ``(c + δc) / c``."""
@@ -438,9 +362,7 @@ class Kalman:
         return {"kind": "kalman", "origin": [float(v) for v in self.origin], "epoch": self.epoch,
                 "filter": self.filter.state_dict(),
                 "creep_anchor": None if self.creep_anchor is None else [float(v) for v in self.creep_anchor],
-                "rejected": list(self.rejected), "streak_start": self.streak_start,
-                "failed_at": self.failed_at, "relocalised_at": self.relocalised_at,
-                "scan": self.scan.state_dict()}
+                **self.trust.state_dict(), "scan": self.scan.state_dict()}
 
     @classmethod
     def from_state(cls, state: dict, options: ExecOptions) -> Kalman:
@@ -448,10 +370,7 @@ class Kalman:
         out.filter = DriftFilter.from_state(out.params, state["filter"])
         ca = state["creep_anchor"]
         out.creep_anchor = None if ca is None else np.asarray(ca, float)
-        out.rejected = list(state.get("rejected", []))
-        out.rejections = len(set(out.rejected))
-        out.relocalised_at = state.get("relocalised_at")
-        out.streak_start, out.failed_at = state.get("streak_start"), state.get("failed_at")
+        out.trust = Trust.from_state(state)
         out.scan = ScanDrift.from_state(state["scan"])
         return out
 

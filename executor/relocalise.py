@@ -24,6 +24,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from . import creep_terms
 from .context import RunContext
 from .engine import Msg
 from .registration import register
@@ -127,7 +128,7 @@ def relocalise(ctx: RunContext, why: str):
                                        (t_full0, line_time, (y0 - image.origin[1]) / image.pixel_size,
                                         (y1 - y0) / image.pixel_size))
         R = np.eye(2) * (reg.std ** 2 + 1.0) + creep_cov
-        old, since = est.offset(t_mid), est.streak_start
+        old, since = est.offset(t_mid), est.trust.streak_start
         forgiven = est.relocalised(t_mid, z, R, tau, ctx.refs)
         new, cov = est.offset(t_mid), est.offset_cov(t_mid)
         marks.forgive(forgiven)
@@ -174,7 +175,7 @@ def _window_offset(est, off, shift, new_rows, old_rows) -> tuple[float, float, n
     creep_now = np.mean([est.creep_offset(v) for v in s], axis=0) - est.creep_offset(t_mid - est.epoch)
     creep_then = np.mean([est.scan.creep_at(v) for v in taus], axis=0)
     z = off - est.origin + np.asarray(shift, float) + creep_then - est.creep_scale() * creep_now
-    return t_mid, float(tau), z, est.creep_rel_var() * np.outer(creep_now, creep_now)
+    return t_mid, float(tau), z, creep_terms.rel_var(est) * np.outer(creep_now, creep_now)
 
 
 def _centre(w) -> np.ndarray:

@@ -99,7 +99,7 @@ def test_rejections_in_a_row_call_for_relocalisation_and_an_acceptance_clears_th
     est, belief, refs = _kalman()
     assert est.needs_relocalisation(10.0, OPTS) is None
     est.measure("r1", (1200.0, 1000.0), np.eye(2), 10.0, refs, [], set())
-    assert est.rejections == 1 and est.streak_start == 10.0
+    assert est.trust.rejections == 1 and est.trust.streak_start == 10.0
     est.reject("e1", 12.0)
     why = est.needs_relocalisation(12.0, OPTS)
     assert why[0] == "rejections" and "r1, e1" in why[1]
@@ -107,7 +107,7 @@ def test_rejections_in_a_row_call_for_relocalisation_and_an_acceptance_clears_th
     assert forgiven == ["e1", "r1"] and "r1" not in refs.gated
     assert est.offset(13.0) == pytest.approx([200.0, 0.0], abs=0.1)
     assert est.sigma(13.0) < 2.5
-    assert est.needs_relocalisation(13.0, OPTS) is None and est.streak_start is None
+    assert est.needs_relocalisation(13.0, OPTS) is None and est.trust.streak_start is None
 
 
 def test_a_growing_sigma_and_a_long_pause_call_for_relocalisation_but_not_right_after_a_failure():
@@ -130,4 +130,4 @@ def test_the_kalman_state_keeps_its_rejection_streak():
     from nanoasm.executor.estimators import estimator_from_state
 
     back = estimator_from_state(est.state_dict(), OPTS)
-    assert back.rejected == ["e2", "r3"] and back.rejections == 2 and back.streak_start == 5.0
+    assert back.trust.rejected == ["e2", "r3"] and back.trust.rejections == 2 and back.trust.streak_start == 5.0

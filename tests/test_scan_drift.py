@@ -4,6 +4,8 @@ and what a registered relocalisation window measures (relocalise._window_offset)
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -98,7 +100,10 @@ class _Est:
 
     def __init__(self, moves):
         self.moves = moves
-        self.scan = self
+        self.scan = self                                   # no moves in the full scan
+        self.filter = SimpleNamespace(statics=0, learn_creep=False)   # still bootstrapping
+        self.params = SimpleNamespace(creep=SimpleNamespace(amplitude=AMP))
+        self.cov = np.diag([0.0, 0.0, 0.0, 0.0, 0.04])     # the amplitude known to 20 %
 
     def creep_offset(self, tau):
         return creep_offset(tau, [m[0] for m in self.moves], [m[1] for m in self.moves], AMP, TAU)
@@ -108,9 +113,6 @@ class _Est:
 
     def creep_scale(self):
         return 1.0
-
-    def creep_rel_var(self):
-        return 0.04
 
 
 def test_a_window_measures_the_middle_of_its_scan_less_the_creep_curvature_over_it():
