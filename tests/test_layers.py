@@ -83,3 +83,11 @@ def test_drift_may_import_param_alone(tmp_path):
     (tree / "nanoasm/drift/_probe.py").write_text("import nanoasm.param\n")
     run = lint_imports(tree)
     assert run.returncode == 0, run.stdout + run.stderr
+
+
+def test_executor_modules_stay_small():
+    """The executor's parts stay readable alone: no module over 400 lines, the assembly
+    (procedure, push and execution) at most 300."""
+    sizes = {p.name: len(p.read_text().splitlines()) for p in (ROOT / "executor").glob("*.py")}
+    assert sizes["assembly.py"] <= 300
+    assert not {name: n for name, n in sizes.items() if n > 400}
