@@ -14,6 +14,12 @@
 Units: ``$INSUNITS`` when set (nm, µm, mm, cm, m, in, ...); ``scale`` (nm per drawing
 unit) overrides it and is the only source for unitless drawings (default 1.0). Only
 model space is read; block references (INSERT) are expanded with their transforms.
+
+Expansion is budgeted before ezdxf builds anything (issue 15: a 30000 x 30000 MINSERT,
+blocks nested 8 levels x 10 and huge-radius bulges each ran for minutes and gigabytes):
+a block inserted in itself, nesting past :data:`MAX_DEPTH`, more than
+:data:`MAX_INSTANCES` entities after expansion and more than :data:`MAX_ARC_POINTS`
+points of flattened arcs are refused with one line.
 """
 
 from __future__ import annotations
@@ -23,6 +29,7 @@ import os
 import struct
 from collections.abc import Iterator
 from pathlib import Path
+from typing import NoReturn
 
 import ezdxf
 from ezdxf import recover
@@ -58,8 +65,21 @@ INSUNITS_NM = {
     14: 1e8,        # decimetre
 }
 
+#: Deepest nesting of block references (an INSERT in a block inserted in a block ...).
+#: CAD drawings nest a few levels; 16 leaves room and keeps ezdxf's expansion shallow.
+MAX_DEPTH = 16
+#: Most entities after expanding every block reference (a MINSERT counts rows x columns,
+#: nested blocks multiply; model-space entities count too). ezdxf builds about 20 000
+#: virtual entities a second here, so 100 000 is ~5 s and ~300 MB; the 30000 x 30000
+#: MINSERT of issue 15 asks for 9 x 10^8.
+MAX_INSTANCES = 100_000
+#: Most points the arcs (LWPOLYLINE bulges) of the whole drawing may be flattened into at
+#: FLATTEN_NM. An arc of radius r and angle a needs about a / sqrt(8 FLATTEN_NM / r)
+#: points: a full circle of 1 mm radius ~2 200, of 100 um ~700; a bulge with a radius of
+#: 10^15 nm would need 10^8 (issue 15: a MemoryError after 43 s).
+MAX_ARC_POINTS = 200_000
+
 _BINARY_SENTINEL = b"AutoCAD Binary DXF"
-_MAX_BLOCK_DEPTH = 16
 
 
 def import_dxf(path: str | os.PathLike, *, scale: float | None = None,
@@ -151,12 +171,14 @@ class _Mapper(LayoutBuilder):
         self.unit = unit
         self.rod_diameter = rod_diameter
         self.origin: Point = (0.0, 0.0)
+        self.arc_points = 0     # estimated points of the arcs flattened so far
 
     def nm(self, p) -> Point:
         """Drawing coordinates -> layout nm."""
         return (float(p[0]) - self.origin[0]) * self.unit, (float(p[1]) - self.origin[1]) * self.unit
 
     def run(self, doc: ezdxf.document.Drawing, size: Point | None) -> dict:
+        _Expansion(doc, self.source).check(doc.modelspace())
         entities = list(_entities(doc.modelspace(), self.source))
         size = self._area(entities, size)
         for key, e in entities:
@@ -223,6 +245,7 @@ class _Mapper(LayoutBuilder):
     def _polyline(self, key: str, e: DXFGraphic) -> None:
         self._planar(key, e)
         if _is_closed_polyline(e):
+            self._arc_budget(key, e)
             try:
                 points = list(make_path(e).flattening(FLATTEN_NM / self.unit, segments=8))
             except (ValueError, ZeroDivisionError, ArithmeticError) as exc:
@@ -239,6 +262,113 @@ class _Mapper(LayoutBuilder):
         else:
             self.ignore("open LWPOLYLINE")
 
+    def _arc_budget(self, key: str, e: DXFGraphic) -> None:
+        """Refuse a closed polyline whose bulges would flatten into more points than
+        :data:`MAX_ARC_POINTS` leaves (estimated before ezdxf flattens them)."""
+        points = [(float(x), float(y), float(b)) for x, y, b in e.get_points("xyb")]
+        tol = FLATTEN_NM / self.unit
+        for (x0, y0, bulge), (x1, y1, _) in zip(points, points[1:] + points[:1]):
+            if not bulge:
+                continue
+            if not all(math.isfinite(v) for v in (x0, y0, x1, y1, bulge)):
+                self.fail(key, "a vertex or bulge is not finite")
+            angle = 4 * math.atan(abs(bulge))
+            chord = math.hypot(x1 - x0, y1 - y0)
+            radius = chord / (2 * math.sin(angle / 2)) if chord else 0.0
+            if radius > tol:
+                self.arc_points += math.ceil(angle / (2 * math.acos(1 - tol / radius)))
+            if not self.arc_points <= MAX_ARC_POINTS:
+                self.fail(key, f"flattening its arcs (one of radius {radius * self.unit:.3g} nm) "
+                               f"would take the drawing past the {MAX_ARC_POINTS} arc points the "
+                               f"importer allows at {FLATTEN_NM:g} nm")
+
+
+class _Expansion:
+    """Counts what expanding the block references would give, without building it:
+    refuses a block inserted in itself, nesting past :data:`MAX_DEPTH` and more than
+    :data:`MAX_INSTANCES` entities. Each block is counted once."""
+
+    def __init__(self, doc: ezdxf.document.Drawing, src: str):
+        self.doc = doc
+        self.src = src
+        self.done: dict[str, tuple[int, int]] = {}          # block -> (entities, depth)
+        self.path: list[str] = []
+        self.key = ""
+
+    def check(self, modelspace) -> None:
+        total = 0
+        for e in modelspace:
+            handle = e.dxf.get("handle")
+            self.key = f"{e.dxftype()}" + (f" {handle}" if handle else "")
+            total += self._entity(e)[0]
+            if total > MAX_INSTANCES:
+                what = (f"expanding its block{self._grid(e)} would take the drawing past"
+                        if e.dxftype() == "INSERT" else "the drawing has more than")
+                self.fail(f"{what} the {MAX_INSTANCES} entities the importer allows "
+                          "(after expanding blocks and MINSERT arrays)")
+
+    def fail(self, problem: str) -> NoReturn:
+        raise InputError(self.src, self.key, problem)
+
+    @staticmethod
+    def _copies(e: DXFGraphic) -> int:
+        """How many inserts ezdxf makes of an INSERT (its MINSERT loop runs rows x
+        columns times whenever ``mcount`` > 1, even when a spacing is 0)."""
+        if e.mcount <= 1:
+            return 1
+        return max(1, max(0, int(e.dxf.row_count)) * max(0, int(e.dxf.column_count)))
+
+    def _grid(self, e: DXFGraphic) -> str:
+        if e.dxftype() != "INSERT":
+            return ""
+        name = e.dxf.get("name", "?")
+        if self._copies(e) > 1:
+            return f" {name} ({e.dxf.row_count} x {e.dxf.column_count} MINSERT)"
+        return f" {name}"
+
+    def _entity(self, e: DXFGraphic) -> tuple[int, int]:
+        """(entities, depth) one entity expands to."""
+        if e.dxftype() != "INSERT":
+            return 1, 0
+        block = self.doc.blocks.get(e.dxf.get("name", ""))
+        if block is None:                                   # ezdxf expands it to nothing
+            return 1, 0
+        n, depth = self._block(block)
+        return self._copies(e) * (1 + n), depth + 1
+
+    def _block(self, block) -> tuple[int, int]:
+        name = block.name.lower()
+        if name in self.done:
+            n, depth = self.done[name]
+            if len(self.path) + depth + 1 > MAX_DEPTH:
+                self._too_deep(block.name)
+            return n, depth
+        if name in (p.lower() for p in self.path):
+            start = [p.lower() for p in self.path].index(name)
+            self.fail(f"block {block.name} is inserted in itself "
+                      f"({' > '.join([*self.path[start:], block.name])})")
+        self.path.append(block.name)
+        if len(self.path) > MAX_DEPTH:
+            self._too_deep(None)
+        total, deepest = 0, 0
+        for e in block:
+            n, depth = self._entity(e)
+            total += n
+            deepest = max(deepest, depth)
+            if total > MAX_INSTANCES:
+                via = f"; inserted via {' > '.join(self.path)}" if len(self.path) > 1 else ""
+                self.fail(f"block {block.name} expands to more than the {MAX_INSTANCES} "
+                          f"entities the importer allows (after expanding blocks and MINSERT arrays{via})")
+        self.path.pop()
+        self.done[name] = (total, deepest)
+        return total, deepest
+
+    def _too_deep(self, more: str | None) -> NoReturn:
+        chain = [*self.path, *([more] if more else [])]
+        if len(chain) > 6:
+            chain = [*chain[:3], "...", *chain[-2:]]
+        self.fail(f"block references are nested more than {MAX_DEPTH} deep ({' > '.join(chain)})")
+
 
 def _on_area_layer(e: DXFGraphic) -> bool:
     return str(e.dxf.get("layer", "0")).upper() == AREA_LAYER
@@ -253,7 +383,7 @@ def _is_closed_polyline(e: DXFGraphic) -> bool:
 
 def _entities(space, src: str, prefix: str = "", depth: int = 0) -> Iterator[tuple[str, DXFGraphic]]:
     """``(key, entity)`` for every entity, block references expanded in place."""
-    if depth > _MAX_BLOCK_DEPTH:
+    if depth > MAX_DEPTH:
         raise InputError(src, prefix.rstrip(" >"), "block references are nested too deeply")
     for e in space:
         handle = e.dxf.get("handle")

@@ -15,13 +15,22 @@ Defaults (each an option):
 
 The top cell is used (or ``cell``), with references and arrays flattened. Coordinates
 are converted to nm with the library's unit. Other layers and text labels are ignored.
+
+Before gdstk flattens anything, the reference hierarchy below the top cell is walked
+here (issue 15: gdstk crashes with SIGSEGV on a cyclic reference, on an array of
+32767 x 32767 and on deep nesting): a cycle, nesting deeper than :data:`MAX_DEPTH`, more
+than :data:`MAX_INSTANCES` instances or :data:`MAX_VERTICES` vertices after flattening
+are refused with one line.
 """
 
 from __future__ import annotations
 
 import math
 import os
+from collections import Counter
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import NoReturn
 
 import gdstk
 import numpy as np
@@ -50,6 +59,21 @@ ROUND_TOL = 0.05
 MAX_GAP_DEG = 90.0
 #: Rod rectangles: largest |cos| of a corner angle and relative mismatch of opposite sides.
 RECT_TOL = 0.05
+
+#: Deepest nesting of cell references below the top cell. Real layouts nest a few
+#: levels (rarely 20); gdstk flattens recursively in C++, and a chain nested deep enough
+#: overflows its stack (SIGSEGV, no message).
+MAX_DEPTH = 64
+#: Most instances after flattening: every shape, label and cell placement counts once
+#: per time it is placed (an AREF counts columns x rows; nested arrays multiply). A
+#: million flatten in about a second and well under 1 GB; the 550-byte AREF of
+#: 32767 x 32767 in issue 15 asks for 10^9 and made gdstk segfault.
+MAX_INSTANCES = 1_000_000
+#: Most vertices, after flattening, of the shapes on the particle, rod, keep-out and
+#: area layers (only these are flattened; round path ends counted as gdstk will draw
+#: them). Joining split particle polygons costs ~300 bytes a vertex, so a million stay
+#: near 350 MB and a few seconds; 5 000 particles of 200 vertices fit.
+MAX_VERTICES = 1_000_000
 
 # GDSII record types and the byte size of each data type (0: no data ... 6: ASCII).
 _HEADER, _ENDLIB = 0x00, 0x04
@@ -86,6 +110,7 @@ def import_gds(path: str | os.PathLike, *, cell: str | None = None,
     cell = name_option("cell", cell) if cell is not None else None
     _check_records(read_bytes(path), src)
     top = _top_cell(_read(path, src), cell, src)
+    tally = _Hierarchy(src, set(roles.values())).tally(top)
     builder = LayoutBuilder(src, Path(path).stem)
     origin, size = _working_area(top, roles["area"], size, builder)
     _particles(top, roles["particle"], origin, builder)
@@ -93,7 +118,7 @@ def import_gds(path: str | os.PathLike, *, cell: str | None = None,
     for poly in top.get_polygons(include_paths=True, layer=roles["keepout"][0], datatype=roles["keepout"][1]):
         builder.keepout(_key("polygon", roles["keepout"], poly.points),
                         [_shift(p, origin) for p in poly.points])
-    _count_ignored(top, set(roles.values()), builder)
+    _count_ignored(tally, set(roles.values()), builder)
     p, r = roles["particle"], roles["rod"]
     layout = builder.build(size, f"expected circle polygons on layer {p[0]}/{p[1]} "
                                  f"or paths/rectangles on layer {r[0]}/{r[1]}")
@@ -154,6 +179,123 @@ def _top_cell(lib: gdstk.Library, name: str | None, src: str) -> gdstk.Cell:
         raise InputError(src, None, f"{len(tops)} top cells ({_names(c.name for c in tops)}); "
                                     "choose one with --cell")
     return tops[0]
+
+
+@dataclass
+class _Tally:
+    """What flattening one cell would give (every count already multiplied out)."""
+    instances: int = 1                                      # itself, its shapes, labels, placements
+    vertices: int = 0                                       # of shapes on the role layers
+    height: int = 0                                         # deepest reference chain below it
+    shapes: Counter = field(default_factory=Counter)        # (layer, datatype) -> count
+    labels: int = 0
+
+
+class _Hierarchy:
+    """Walks the reference hierarchy with gdstk's cell and reference objects (nothing is
+    flattened): refuses a cycle, nesting past :data:`MAX_DEPTH` and flattened totals
+    past :data:`MAX_INSTANCES` / :data:`MAX_VERTICES`. Each cell is counted once."""
+
+    def __init__(self, src: str, role_layers: set[Layer]):
+        self.src = src
+        self.roles = role_layers
+        self.done: dict[int, _Tally] = {}
+        self.path: list[gdstk.Cell] = []
+
+    def fail(self, cell: gdstk.Cell, problem: str) -> NoReturn:
+        raise InputError(self.src, f"cell {cell.name}", problem)
+
+    def tally(self, cell: gdstk.Cell) -> _Tally:
+        known = self.done.get(id(cell))
+        if known is None:
+            if any(c is cell for c in self.path):
+                chain = [c.name for c in self.path[[id(c) for c in self.path].index(id(cell)):]]
+                self.fail(cell, f"references itself ({_chain([*chain, cell.name])}); "
+                                "a cell must not contain itself")
+            self.path.append(cell)
+            if len(self.path) > MAX_DEPTH + 1:
+                self.fail(self.path[0], f"references nested more than {MAX_DEPTH} deep "
+                                        f"({_chain(c.name for c in self.path)})")
+            known = self.done[id(cell)] = self._own(cell)
+            self.path.pop()
+        elif len(self.path) + known.height > MAX_DEPTH:
+            self.fail(self.path[0], f"references nested more than {MAX_DEPTH} deep "
+                                    f"({_chain([*(c.name for c in self.path), cell.name])} ...)")
+        return known
+
+    def _own(self, cell: gdstk.Cell) -> _Tally:
+        t = _Tally(labels=sum(_copies(lb) for lb in cell.labels))
+        t.instances += t.labels
+        for poly in cell.polygons:
+            n = _copies(poly)
+            layer = (poly.layer, poly.datatype)
+            t.shapes[layer] += n
+            if layer in self.roles:
+                t.vertices += n * poly.size
+        for path in cell.paths:
+            n = _copies(path)
+            for i, layer in enumerate(zip(path.layers, path.datatypes)):
+                t.shapes[layer] += n
+                if layer in self.roles:
+                    t.vertices += n * _path_vertices(path, i)
+        t.instances += sum(t.shapes.values())
+        self._check(cell, t)
+        for ref in cell.references:
+            if not isinstance(ref.cell, gdstk.Cell):    # a missing cell: gdstk draws nothing
+                continue
+            n = _copies(ref)
+            sub = self.tally(ref.cell)
+            t.instances += n * sub.instances
+            t.vertices += n * sub.vertices
+            t.height = max(t.height, sub.height + 1)
+            t.labels += n * sub.labels
+            for layer, k in sub.shapes.items():
+                t.shapes[layer] += n * k
+            self._check(cell, t, ref, n)
+        return t
+
+    def _check(self, cell: gdstk.Cell, t: _Tally, ref: gdstk.Reference | None = None,
+               copies: int = 1) -> None:
+        what = ""
+        if ref is not None and copies > 1:
+            rep = ref.repetition
+            grid = f"{rep.columns} x {rep.rows}" if rep.columns else f"{copies} copies"
+            what = f" (its array of {ref.cell.name}: {grid})"
+        if t.instances > MAX_INSTANCES:
+            self.fail(cell, f"flattening its references{what} would give more than the "
+                            f"{MAX_INSTANCES} instances (shapes, labels and cell placements) "
+                            "the importer allows")
+        if t.vertices > MAX_VERTICES:
+            self.fail(cell, f"flattening its references{what} would give more than the "
+                            f"{MAX_VERTICES} vertices on the particle, rod, keep-out and area "
+                            "layers the importer allows")
+
+
+def _copies(element) -> int:
+    """How many times a shape, label or reference is placed (its repetition's count)."""
+    rep = element.repetition
+    return max(1, int(rep.size)) if rep is not None else 1
+
+
+def _path_vertices(path, i: int) -> int:
+    """Vertices of the polygon gdstk draws for sub-path ``i`` (round ends as arcs drawn
+    to the path's tolerance: a huge width means a huge number of points)."""
+    n = 2 * len(path.spine())
+    if path.ends[i] == "round":
+        r = float(path.widths()[:, i].max()) / 2
+        tol = float(path.tolerance)
+        if not (math.isfinite(r) and tol > 0):
+            return MAX_VERTICES + 1
+        if r > tol:
+            n += 2 * math.ceil(math.pi / (2 * math.acos(1 - tol / r)))
+    return n
+
+
+def _chain(names, limit: int = 6) -> str:
+    names = list(names)
+    if len(names) > limit:
+        names = [*names[:3], "...", *names[-2:]]
+    return " > ".join(names)
 
 
 def _names(names, limit: int = 8) -> str:
@@ -295,10 +437,9 @@ def _rectangle_rod(points: np.ndarray, layer: Layer, origin: Point, b: LayoutBui
     b.rod(key, _shift(centre - half, origin), _shift(centre + half, origin), diameter)
 
 
-def _count_ignored(top: gdstk.Cell, used: set[Layer], b: LayoutBuilder) -> None:
-    for poly in top.get_polygons(include_paths=True):
-        if (poly.layer, poly.datatype) not in used:
-            b.ignore(f"shape(s) on layer {poly.layer}/{poly.datatype}")
-    labels = top.get_labels()
-    if labels:
-        b.ignore("text label(s)", len(labels))
+def _count_ignored(tally: _Tally, used: set[Layer], b: LayoutBuilder) -> None:
+    for (layer, datatype), n in sorted(tally.shapes.items()):
+        if (layer, datatype) not in used and n:
+            b.ignore(f"shape(s) on layer {layer}/{datatype}", n)
+    if tally.labels:
+        b.ignore("text label(s)", tally.labels)

@@ -31,6 +31,13 @@ FORMAT = "nanoasm.layout/1"
 #: Largest distance (nm) between a flattened curve and its chords.
 FLATTEN_NM = 1.0
 
+#: Most targets plus keep-outs one import may produce. Each costs ~0.1-0.2 ms to map
+#: and validate, so 20 000 stay within a few seconds; an AFM places targets one push at a
+#: time, and real layouts have tens to thousands. Past it the import stops with one
+#: line instead of running for minutes (issue 15). The format modules budget their own
+#: expansion (``MAX_DEPTH``, ``MAX_INSTANCES``, ...) before any of it is built.
+MAX_ELEMENTS = 20_000
+
 #: File suffix -> format module.
 SUFFIXES = {".svg": "svg", ".gds": "gds", ".gds2": "gds", ".gdsii": "gds", ".dxf": "dxf"}
 
@@ -203,6 +210,11 @@ class LayoutBuilder:
         """Raise the located error for ``key``."""
         raise InputError(self.source, key, problem)
 
+    def _count(self) -> None:
+        if len(self.targets) + len(self.keepouts) >= MAX_ELEMENTS:
+            self.fail(None, f"more than {MAX_ELEMENTS} targets and keep-outs; an import may "
+                            f"produce at most {MAX_ELEMENTS}")
+
     def _check(self, key: str, what: str, *values: float, **limits) -> None:
         for v in values:
             check_number(v, lambda problem: self.fail(key, f"{what} {problem}"), **limits)
@@ -217,6 +229,7 @@ class LayoutBuilder:
 
     def particle(self, key: str, at: Point, diameter: float, target_id: str | None = None) -> None:
         """A particle slot centred at ``at`` (nm)."""
+        self._count()
         self._check(key, "position", *at)
         d = self._size(key, "diameter", diameter)
         self.targets.append(self._with_id(target_id, {
@@ -226,6 +239,7 @@ class LayoutBuilder:
             target_id: str | None = None) -> None:
         """A rod slot along the segment ``a``-``b`` (nm); ``extension`` is added to its
         length (caps beyond the end points, both ends together)."""
+        self._count()
         self._check(key, "end point", *a, *b)
         dx, dy = b[0] - a[0], b[1] - a[1]
         if math.hypot(dx, dy) == 0:
@@ -239,6 +253,7 @@ class LayoutBuilder:
 
     def keepout(self, key: str, points: Iterable[Point]) -> None:
         """A keep-out polygon (nm); repeated and closing vertices are dropped."""
+        self._count()
         pts = [(rounded(x), rounded(y)) for x, y in points]
         for p in pts:
             self._check(key, "keep-out vertex", *p)

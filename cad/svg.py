@@ -15,7 +15,11 @@ Mapping (user units are the root viewBox's, times ``scale`` nm):
 
 Transforms (also ``<use>``) are applied. Element ids become target ids. The XML is
 checked with defusedxml first: entity declarations and external references are
-refused before svgelements sees the file.
+refused before svgelements sees the file. Then, still before svgelements, the tree is
+walked with ``<use>`` references followed as svgelements will (issue 15: 100k nested
+``<g>`` and ``<use>`` cycles raised RecursionError, a 3.9 KB ``<use>`` fan-out ran for
+minutes): a ``<use>`` cycle, nesting past :data:`MAX_DEPTH` and more than
+:data:`MAX_INSTANCES` elements after expansion are refused with one line.
 """
 
 from __future__ import annotations
@@ -26,6 +30,7 @@ import os
 import re
 from collections import Counter
 from pathlib import Path
+from typing import NoReturn
 from xml.etree.ElementTree import Element, ParseError, tostring
 
 import defusedxml
@@ -47,6 +52,17 @@ UNDRAWN = {"defs", "symbol", "clipPath", "mask", "marker", "pattern", "linearGra
            "radialGradient", "filter", "metadata", "foreignObject", "title", "desc"}
 INKSCAPE_LABEL = "{http://www.inkscape.org/namespaces/inkscape}label"
 KEEPOUT_TAGS = ("rect", "polygon", "polyline", "path", "circle", "ellipse")
+
+#: Deepest nesting of elements, a ``<use>`` counting one level above what it draws.
+#: Drawings nest a few groups (Inkscape layers and groups, ~10); ElementTree's writer
+#: and svgelements recurse once per level, so 100 000 nested ``<g>`` hit Python's
+#: recursion limit (RecursionError). 128 stays far below it.
+MAX_DEPTH = 128
+#: Most elements svgelements may build: every element of the file plus every copy a
+#: ``<use>`` makes of its target (nested ``<use>`` multiply). svgelements builds ~25 000
+#: elements a second here (50 000: ~2 s, ~200 MB, and real drawings have a few
+#: thousand); the 3.9 KB fan-out of issue 15 asks for 10^11.
+MAX_INSTANCES = 50_000
 
 #: User units per unit (CSS: 96 px per inch).
 UNITS = {"": 1.0, "px": 1.0, "in": 96.0, "cm": 96 / 2.54, "mm": 96 / 25.4, "pt": 96 / 72, "pc": 16.0}
@@ -148,7 +164,76 @@ def _annotate(root: Element, src: str) -> bytes:
         if tag in ("polygon", "polyline"):
             _check_points(el.get("points", ""), key, src)
         el.set(KEY_ATTR, key)
+    _Expansion(root, src).check()
     return tostring(root, encoding="utf-8")
+
+
+class _Expansion:
+    """Counts the elements svgelements will build, following ``<use>`` as it does
+    (``href`` over ``xlink:href``, the id after the first character, the last element of
+    an id): refuses a cycle, nesting past :data:`MAX_DEPTH` and more than
+    :data:`MAX_INSTANCES` elements. Each element is counted once."""
+
+    def __init__(self, root: Element, src: str):
+        self.root = root
+        self.src = src
+        self.ids = {el.get("id"): el for el in root.iter() if el.get("id") is not None}
+        self.done: dict[int, tuple[int, int]] = {}          # id(element) -> (elements, height)
+        self.path: list[Element] = []
+
+    def check(self) -> None:
+        self._visit(self.root)
+
+    def fail(self, el: Element, problem: str) -> NoReturn:
+        raise InputError(self.src, _key(el), problem)
+
+    def _visit(self, el: Element) -> tuple[int, int]:
+        known = self.done.get(id(el))
+        if known is not None:
+            if len(self.path) + known[1] >= MAX_DEPTH:
+                self._too_deep(el)
+            return known
+        if any(p is el for p in self.path):
+            use = self.path[-1]
+            self.fail(use, "<use> refers to itself" if use is el else
+                      f"<use> refers to {_key(el)}, which leads back to this <use> (a reference cycle)")
+        self.path.append(el)
+        if len(self.path) > MAX_DEPTH:
+            self._too_deep(el)
+        parts = list(el)
+        if _use_tag(el.tag):
+            href = el.get(XLINK_HREF)
+            href = el.get("href", href)
+            target = self.ids.get(href[1:]) if href is not None else None
+            if target is not None:
+                parts.append(target)
+        count, height = 1, 0
+        for part in parts:
+            n, h = self._visit(part)
+            count, height = count + n, max(height, h + 1)
+            if count > MAX_INSTANCES:
+                self.fail(el, f"expands to more than the {MAX_INSTANCES} elements the importer "
+                              "allows (each copy a <use> makes counted)")
+        self.path.pop()
+        self.done[id(el)] = (count, height)
+        return count, height
+
+    def _too_deep(self, el: Element) -> NoReturn:
+        self.fail(el, f"elements are nested more than {MAX_DEPTH} deep (a <use> counts as a "
+                      "level above what it draws)")
+
+
+XLINK_HREF = "{http://www.w3.org/1999/xlink}href"
+
+
+def _use_tag(tag) -> bool:
+    """Whether svgelements expands the element (``use``, SVG or no namespace)."""
+    return isinstance(tag, str) and (tag == "use" or (tag.startswith("{http://www.w3.org/2000/svg")
+                                                       and tag[28:] == "use"))
+
+
+def _key(el: Element) -> str:
+    return str(el.get(KEY_ATTR) or _local(el.tag) or el.tag)
 
 
 def _parse(raw: bytes, src: str) -> S.SVG:

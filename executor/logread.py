@@ -7,12 +7,20 @@ mcap-protobuf-support, JSON messages into Python values;
 :meth:`RunLogContents.documents` reads the engine's documents back typed
 (:mod:`nanoasm.executor.documents`). :func:`last_checkpoint` gives the last procedure
 state a run logged, for resuming it.
+
+Chunks are decompressed here, not by the mcap library: a chunk's record states its
+uncompressed size, which is checked against :data:`MAX_CHUNK_BYTES` (and the log's running
+total against :data:`MAX_LOG_BYTES`) before anything is decompressed, and decompression
+stops at the stated size. A chunk beyond a limit is an InputError naming the file (a zstd
+bomb of a few hundred kB claiming 6 GB ends in one line, not in 6 GB of memory); a chunk
+whose data do not match its stated size or CRC is damage, and ends the readable prefix.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,6 +31,15 @@ from nanoasm.errors import InputError
 from .documents import CHANNELS, CHECKPOINT, CheckpointDoc, DocumentError, document_from_dict
 
 MAGIC = b"\x89MCAP0\r\n"
+#: Largest uncompressed size of one chunk read (128 MiB). The run log's writer closes a
+#: chunk at about 1 MiB, or holds one larger message in it: the largest is a full scan's
+#: ``/scan`` grid, 64 MiB for 4096 x 4096 pixels (float32), the most an image may have.
+MAX_CHUNK_BYTES = 128 * 1024 * 1024
+#: Largest uncompressed size of all chunks of one log together (1 GiB): about a
+#: thousand times a bundled example's dry-run log, and a few seconds of decompression.
+MAX_LOG_BYTES = 1024 * 1024 * 1024
+#: Read from a decompressor at a time (bytes), so that what is held is what came out.
+_PIECE = 1024 * 1024
 
 
 @dataclass(frozen=True)
@@ -114,17 +131,111 @@ class _Counting:
         return n
 
 
-def _records(fh, size: int) -> Iterator[Any]:
+def _records(fh: _Counting, size: int, src: str) -> Iterator[Any]:
+    """The log's records in order, the records of each chunk in place of the chunk."""
+    from mcap.records import Chunk
     from mcap.stream_reader import StreamReader
 
     # a record cannot be longer than the file: a garbled length stops the reading
-    return StreamReader(fh, validate_crcs=True, record_size_limit=max(size, 1)).records
+    records = StreamReader(fh, validate_crcs=True, record_size_limit=max(size, 1), emit_chunks=True).records
+    total = 0
+    while True:
+        start = fh.count
+        try:
+            rec = next(records)
+        except StopIteration:
+            return
+        if not isinstance(rec, Chunk):
+            yield rec
+            continue
+        claim = rec.uncompressed_size
+        if claim > MAX_CHUNK_BYTES:
+            raise InputError(src, None, f"the chunk at byte {start} claims {claim} bytes uncompressed; at most "
+                                        f"{MAX_CHUNK_BYTES} (MAX_CHUNK_BYTES, 128 MiB) are read")
+        total += claim
+        if total > MAX_LOG_BYTES:
+            raise InputError(src, None, f"the chunks up to byte {fh.count} hold {total} bytes uncompressed; at "
+                                        f"most {MAX_LOG_BYTES} (MAX_LOG_BYTES, 1 GiB) are read")
+        data = _decompress(rec)
+        if rec.uncompressed_crc != 0 and zlib.crc32(data) != rec.uncompressed_crc:
+            raise ValueError(f"crc validation failed in Chunk, expected: {rec.uncompressed_crc}, "
+                             f"calculated: {zlib.crc32(data)}")
+        yield from _chunk_records(data)
+
+
+def _chunk_records(data: bytes) -> Iterator[Any]:
+    """The records of a decompressed chunk. Only schemas, channels and messages may be
+    in a chunk (the MCAP specification): anything else is damage, which also stops a
+    chunk of zeros (opcode 0, reserved) from being read as millions of empty records."""
+    import io
+
+    from mcap.data_stream import ReadDataStream
+    from mcap.opcode import Opcode
+    from mcap.records import Channel, Message, Schema
+
+    stream = ReadDataStream(io.BytesIO(data))
+    end = len(data)
+    while stream.count < end:
+        opcode = stream.read1()
+        length = stream.read8()
+        start = stream.count
+        if length > end - start:
+            raise ValueError(f"a record in a chunk runs {length - (end - start)} byte(s) past the chunk's end")
+        if opcode == Opcode.MESSAGE:
+            rec = Message.read(stream, length)
+        elif opcode == Opcode.CHANNEL:
+            rec = Channel.read(stream)
+        elif opcode == Opcode.SCHEMA:
+            rec = Schema.read(stream)
+        else:
+            raise ValueError(f"a record of opcode 0x{opcode:02x} in a chunk (only schemas, channels and "
+                             "messages may be there)")
+        padding = length - (stream.count - start)
+        if padding < 0:
+            raise ValueError("a record in a chunk is longer than its stated length")
+        stream.read(padding)
+        yield rec
+
+
+def _decompress(chunk) -> bytes:
+    """A chunk's data decompressed, never beyond the size its record states (ValueError
+    when they do not come to exactly that size)."""
+    expected = chunk.uncompressed_size
+    out = bytearray()
+    if chunk.compression == "":
+        out += chunk.data
+    elif chunk.compression == "zstd":
+        import zstandard
+
+        with zstandard.ZstdDecompressor().stream_reader(chunk.data, read_across_frames=True) as reader:
+            while len(out) <= expected:
+                piece = reader.read(min(_PIECE, expected + 1 - len(out)))
+                if not piece:
+                    break
+                out += piece
+    elif chunk.compression == "lz4":
+        import lz4.frame
+
+        dec = lz4.frame.LZ4FrameDecompressor()
+        piece = dec.decompress(chunk.data, max_length=min(_PIECE, expected + 1))
+        while piece:
+            out += piece
+            if len(out) > expected or dec.eof:
+                break
+            piece = dec.decompress(b"", max_length=min(_PIECE, expected + 1 - len(out)))
+    else:
+        raise ValueError(f"unknown chunk compression {chunk.compression[:20]!r}")
+    if len(out) != expected:
+        more = "more" if len(out) > expected else f"{len(out)}"
+        raise ValueError(f"a chunk decompresses to {more} bytes, not the {expected} it states")
+    return bytes(out)
 
 
 def read_log(path: str | os.PathLike, *, topics: set[str] | None = None) -> RunLogContents:
     """Read ``path`` as far as it goes; ``topics`` limits which messages are decoded.
 
-    Raises :class:`InputError` when the file is missing, empty or not an MCAP file at all;
+    Raises :class:`InputError` when the file is missing, empty or not an MCAP file at all,
+    or holds a chunk beyond :data:`MAX_CHUNK_BYTES` (or chunks beyond :data:`MAX_LOG_BYTES`);
     a file cut short anywhere after its first bytes is read up to the cut.
     """
     from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
@@ -159,7 +270,7 @@ def read_log(path: str | os.PathLike, *, topics: set[str] | None = None) -> RunL
         decoders: dict[int, Any] = {}
         protobuf = DecoderFactory()
         try:
-            for rec in _records(counting, out.size):
+            for rec in _records(counting, out.size, src):
                 if isinstance(rec, Schema):
                     schemas[rec.id] = rec
                 elif isinstance(rec, Channel):
@@ -183,6 +294,8 @@ def read_log(path: str | os.PathLike, *, topics: set[str] | None = None) -> RunL
                     out.complete = True
                 out.read_bytes = counting.count
             out.read_bytes = counting.count      # the closing magic bytes
+        except InputError:
+            raise                                # a limit passed: refused, not read in part
         except Exception as exc:  # noqa: BLE001 - any bad byte ends the readable prefix
             out.complete = False
             out.problem = _problem(exc, counting.count, out.size)

@@ -260,6 +260,19 @@ def _options(cls, names: dict[str, str] | None = None, **values):
 
 # -- identification -----------------------------------------------------------------
 
+def _read_scan(scan: Path, pixel_size: float | None):
+    """The height image of SCAN (``--pixel-size`` checked against the limits first), its
+    warnings printed, one line each."""
+    from nanoasm.world.readers import check_pixel_size, image_warnings, read_height_image
+
+    if pixel_size is not None:
+        check_pixel_size(pixel_size, None, "--pixel-size")
+    image = read_height_image(scan, pixel_size=pixel_size)
+    for line in image_warnings(image):
+        print(f"nanoasm: warning: {line}", file=sys.stderr)
+    return image
+
+
 @app.command("identify")
 def identify_cmd(
     scan: Annotated[Path, typer.Argument(help="Height image: .gwy .stp .jpk .spm .ibw .txt/.asc/.csv "
@@ -273,16 +286,16 @@ def identify_cmd(
 ) -> None:
     """Identify particles, rods, wires and obstacles in an AFM image (environment v1)."""
     from nanoasm.world.identify import identify
-    from nanoasm.world.readers import read_height_image
+    from nanoasm.world.limits import MAX_TIP_RADIUS
 
     if output.suffix.lower() != ".json":
         raise InputError(str(output), None, "output must end in .json")
     _outputs_apart([("-o", output)], [("SCAN", scan)])
-    for option, value in (("--cut", cut), ("--min-area", min_area), ("--pixel-size", pixel_size),
-                          ("--tip-radius", tip_radius)):
+    for option, value in (("--cut", cut), ("--min-area", min_area)):
         if value is not None:
             _number(option, value, positive=True)
-    image = read_height_image(scan, pixel_size=pixel_size)
+    _number("--tip-radius", tip_radius, positive=True, hi=MAX_TIP_RADIUS)
+    image = _read_scan(scan, pixel_size)
     env = identify(image, cut=cut, min_area=min_area, tip_radius=tip_radius)
     env.save(output)
     kinds = {k: sum(o.kind == k for o in env.objects) for k in ("particle", "rod", "wire")}
@@ -327,9 +340,8 @@ def plan_cmd(
         env = load_environment(env_file)
     else:
         from nanoasm.world.identify import identify
-        from nanoasm.world.readers import read_height_image
 
-        env = identify(read_height_image(scan, pixel_size=pixel_size), tip_radius=tip_radius)
+        env = identify(_read_scan(scan, pixel_size), tip_radius=tip_radius)
     plan, stats = _with_progress("planning", lambda progress: plan_assembly(layout, env, options, progress))
     plan.save(output)
     print(f"{output}: written: {len(plan.assignment)} of {len(layout.targets)} slot(s) assigned, "

@@ -3,13 +3,16 @@
 Every problem with a file becomes an :class:`~nanoasm.errors.InputError` whose one
 line names the file and what is wrong with it: missing, a directory, empty, binary,
 not UTF-8, truncated or otherwise not valid TOML/JSON, duplicate JSON keys, NaN or
-infinity in JSON, a top level that is not a table.
+infinity in JSON, an integer of more than :data:`MAX_INT_DIGITS` digits, a top level that
+is not a table.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
+import sys
 import tempfile
 import tomllib
 from pathlib import Path
@@ -20,6 +23,11 @@ from .param import type_name
 
 #: Largest document we read; layouts and scenes are far smaller.
 MAX_BYTES = 64 * 1024 * 1024
+#: Most digits of an integer in a TOML or JSON document: Python's limit on turning text
+#: into an int (``sys.get_int_max_str_digits()``, 4300 unless PYTHONINTMAXSTRDIGITS says
+#: otherwise), which bounds the quadratic time of the conversion. A longer integer is
+#: refused in one line; no value of nanoasm's needs more than 20 digits.
+MAX_INT_DIGITS = sys.get_int_max_str_digits()
 
 
 def read_bytes(path: str | os.PathLike) -> bytes:
@@ -72,6 +80,22 @@ def _json_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
+def _too_many_digits(text: str, what: str) -> str:
+    """The problem of a document holding an integer longer than Python converts (the
+    ValueError of ``int(text)``), with the line of the first such integer when found."""
+    limit = sys.get_int_max_str_digits() or MAX_INT_DIGITS
+    found = re.search(r"(?<![0-9_])[0-9][0-9_]{%d,}" % limit, text)    # each run tried once
+    if found is None:
+        return f"not valid {what}: an integer has more than {limit} digits"
+    digits = sum(c.isdigit() for c in found.group())
+    line = text.count("\n", 0, found.start()) + 1
+    return f"not valid {what}: an integer of {digits} digits on line {line}; at most {limit} are read"
+
+
+def _int_limit(exc: ValueError) -> bool:
+    return "integer string conversion" in str(exc)
+
+
 def parse_json(text: str, src: str) -> Any:
     try:
         return json.loads(text, parse_constant=_json_constant, object_pairs_hook=_json_pairs)
@@ -79,8 +103,9 @@ def parse_json(text: str, src: str) -> Any:
         at_end = exc.pos >= len(text.rstrip())
         what = "truncated JSON" if at_end else "not valid JSON"
         raise InputError(src, None, f"{what}: {exc.msg} (line {exc.lineno}, column {exc.colno})") from None
-    except ValueError as exc:  # from the hooks above
-        raise InputError(src, None, f"not valid JSON: {exc}") from None
+    except ValueError as exc:  # from the hooks above, or an integer too long to convert
+        problem = _too_many_digits(text, "JSON") if _int_limit(exc) else f"not valid JSON: {exc}"
+        raise InputError(src, None, problem) from None
     except RecursionError:
         raise InputError(src, None, "not valid JSON: nested too deeply") from None
 
@@ -90,6 +115,9 @@ def parse_toml(text: str, src: str) -> dict[str, Any]:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise InputError(src, None, f"not valid TOML: {exc}") from None
+    except ValueError as exc:  # int() of an integer longer than MAX_INT_DIGITS
+        problem = _too_many_digits(text, "TOML") if _int_limit(exc) else f"not valid TOML: {exc}"
+        raise InputError(src, None, problem) from None
     except RecursionError:
         raise InputError(src, None, "not valid TOML: nested too deeply") from None
 

@@ -18,8 +18,11 @@ suffix                        format (reader)
 ============================  =====================================================
 
 Every image comes back in nm with row 0 at the bottom. Whatever goes wrong (unknown
-suffix, missing pixel size, unreadable or corrupt file, no finite height, wrong shape)
-is an :class:`~nanoasm.errors.InputError` with one line naming the file.
+suffix, missing pixel size, unreadable or corrupt file, no finite height, wrong shape, a
+limit of :mod:`~nanoasm.world.limits` passed) is an :class:`~nanoasm.errors.InputError`
+with one line naming the file. A ``.npy`` array's declared shape (inside an ``.npz`` too)
+is checked against the pixel budget before its data are read; the libraries' own logging
+and warnings are silenced while they read.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ import os
 import warnings
 import zipfile
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -37,7 +41,8 @@ from nanoasm.errors import InputError
 from nanoasm.fileio import write_atomic
 from nanoasm.instrument import HeightImage
 
-from .readers_instrument import read_gwy, read_ibw, read_jpk, read_spm, read_stp, short_message
+from .limits import MAX_HEIGHT, MAX_INVALID_SHARE, MAX_PIXEL_SIZE, MAX_PIXELS, MIN_PIXEL_SIZE, WARN_INVALID_SHARE
+from .readers_instrument import quiet_libraries, read_gwy, read_ibw, read_jpk, read_spm, read_stp, short_message
 from .readers_text import parse_matrix, parse_xyz
 
 #: The scan file format written by :func:`save_height_image`.
@@ -60,28 +65,65 @@ def _read_text(path: Path, src: str) -> str:
         return raw.decode("latin-1")
 
 
+def _npy_header(fh: IO[bytes], src: str, key: str | None) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and dtype an ``.npy`` stream declares, from its header alone."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fh)
+        if version == (1, 0):
+            shape, _, dtype = fmt.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, _, dtype = fmt.read_array_header_2_0(fh)
+        else:
+            raise InputError(src, key, f".npy format version {version[0]}.{version[1]} is not read "
+                                       "(numeric arrays are written as 1.0)")
+    except (ValueError, EOFError) as exc:
+        raise InputError(src, key, f"not a NumPy array ({short_message(exc)})") from None
+    return tuple(shape), dtype
+
+
+def _checked_header(shape: tuple[int, ...], dtype: np.dtype, src: str, key: str | None,
+                    limit: int = MAX_PIXELS) -> None:
+    """Refuse, before reading its data, an array that is not numeric or declares more
+    than ``limit`` values (a zip bomb's 6 GB height array is a few bytes of header)."""
+    if dtype.kind not in "fiu":
+        raise InputError(src, key, f"array of {dtype} is not numeric")
+    n = math.prod(shape)
+    if n > limit:
+        most = f"{limit} (MAX_PIXELS, 4096 x 4096) are read" if limit == MAX_PIXELS else f"{limit} expected"
+        raise InputError(src, key, f"declares shape ({', '.join(map(str, shape))}), {n} values; at most {most}")
+
+
 def _read_npy(path: Path, src: str, pixel_size: float | None):
     if pixel_size is None:
         raise InputError(src, "pixel_size", "a .npy file has no pixel size: pass it (--pixel-size)")
-    z = np.load(path, allow_pickle=False)
-    if z.dtype.kind not in "fiu":
-        raise InputError(src, None, f"array of {z.dtype} is not numeric")
+    with open(path, "rb") as fh:
+        _checked_header(*_npy_header(fh, src, None), src, None)
+        fh.seek(0)
+        z = np.lib.format.read_array(fh, allow_pickle=False)
     return np.flipud(np.asarray(z, dtype=float)), pixel_size, (0.0, 0.0), {"format": "npy"}
 
 
+#: The arrays of a scan file and the most values each may declare.
+_NPZ_ARRAYS = {"height": MAX_PIXELS, "pixel_size": 1, "origin": 2}
+
+
 def _read_npz(path: Path, src: str):
-    with np.load(path, allow_pickle=False) as data:
-        missing = [k for k in ("height", "pixel_size", "origin") if k not in data.files]
-        if missing:
-            raise InputError(src, missing[0], "missing from the scan file")
-        z = np.asarray(data["height"])
-        ps = np.asarray(data["pixel_size"])
-        origin = np.asarray(data["origin"])
-    if z.dtype.kind not in "fiu":
-        raise InputError(src, "height", f"array of {z.dtype} is not numeric")
-    if ps.shape != () or ps.dtype.kind not in "fiu" or not (math.isfinite(float(ps)) and ps > 0):
+    arrays = {}
+    with zipfile.ZipFile(path) as zf:
+        names = set(zf.namelist())
+        for key, limit in _NPZ_ARRAYS.items():
+            member = next((m for m in (key + ".npy", key) if m in names), None)
+            if member is None:
+                raise InputError(src, key, "missing from the scan file")
+            with zf.open(member) as fh:
+                _checked_header(*_npy_header(fh, src, key), src, key, limit)
+            with zf.open(member) as fh:
+                arrays[key] = np.lib.format.read_array(fh, allow_pickle=False)
+    z, ps, origin = arrays["height"], arrays["pixel_size"], arrays["origin"]
+    if ps.shape != () or not (math.isfinite(float(ps)) and ps > 0):
         raise InputError(src, "pixel_size", "must be one positive number")
-    if origin.shape != (2,) or origin.dtype.kind not in "fiu" or not np.all(np.isfinite(origin)):
+    if origin.shape != (2,) or not np.all(np.isfinite(origin)):
         raise InputError(src, "origin", "must be two finite numbers")
     return (np.asarray(z, dtype=float), float(ps), (float(origin[0]), float(origin[1])),
             {"format": "npz"})
@@ -89,7 +131,9 @@ def _read_npz(path: Path, src: str):
 
 #: Leading bytes of binary formats, checked before a library sees the file.
 MAGIC = {".gwy": (b"GWYP",), ".npy": (b"\x93NUMPY",), ".npz": (b"PK\x03\x04", b"PK\x05\x06"),
-         ".jpk": (b"II*\x00", b"MM\x00*"), ".jpk-qi-image": (b"II*\x00", b"MM\x00*")}
+         ".jpk": (b"II*\x00", b"MM\x00*"), ".jpk-qi-image": (b"II*\x00", b"MM\x00*"),
+         # an Igor binary wave starts with its version, 1, 2, 3 or 5, as a 16-bit integer
+         ".ibw": tuple(bytes(b) for v in (1, 2, 3, 5) for b in ((v, 0), (0, v)))}
 FORMAT_NAMES = {".gwy": "Gwyddion .gwy", ".stp": "WSxM .stp", ".jpk": "JPK", ".jpk-qi-image": "JPK",
                 ".spm": "Bruker .spm", ".ibw": "Igor .ibw", ".npy": "NumPy .npy",
                 ".npz": "nanoasm .npz scan", ".xyz": "XYZ text"}
@@ -108,7 +152,8 @@ def _check_magic(path: Path, src: str, kind: str) -> None:
     with open(path, "rb") as fh:
         head = fh.read(8)
     if not head.startswith(MAGIC[kind]):
-        raise InputError(src, None, f"not a {FORMAT_NAMES[kind]} file (wrong leading bytes)")
+        name = FORMAT_NAMES[kind]
+        raise InputError(src, None, f"not {'an' if name[0] in 'AEIOU' else 'a'} {name} file (wrong leading bytes)")
 
 
 def _load(path: Path, src: str, name: str, pixel_size: float | None, channel: str | None):
@@ -156,9 +201,8 @@ def read_height_image(path: str | os.PathLike, *, pixel_size: float | None = Non
         One line naming the file and the problem.
     """
     src = str(path)
-    if pixel_size is not None and not (isinstance(pixel_size, (int, float))
-                                       and math.isfinite(pixel_size) and pixel_size > 0):
-        raise InputError(src, "pixel_size", f"must be a positive number, got {pixel_size!r}")
+    if pixel_size is not None:
+        check_pixel_size(pixel_size, src, "pixel_size")
     p = Path(path)
     if not p.exists():
         raise InputError(src, None, "no such file")
@@ -170,7 +214,7 @@ def read_height_image(path: str | os.PathLike, *, pixel_size: float | None = Non
     what = FORMAT_NAMES.get(kind, "text")
     try:
         _check_magic(p, src, kind)
-        with warnings.catch_warnings():
+        with warnings.catch_warnings(), quiet_libraries():
             warnings.simplefilter("ignore")
             z, ps, origin, meta = _load(p, src, p.name.lower(), pixel_size, channel)
     except InputError:
@@ -178,19 +222,55 @@ def read_height_image(path: str | os.PathLike, *, pixel_size: float | None = Non
     except (OSError, EOFError, zipfile.BadZipFile) as exc:
         raise InputError(src, None, f"cannot read as {what}: {short_message(exc)}") from None
     except Exception as exc:                     # third-party readers raise anything on bad files
+        if isinstance(exc, NameError) and exc.__context__ is not None:
+            exc = exc.__context__                # a reader's own handler failed: say what it was handling
         raise InputError(src, None, f"corrupt or unreadable {what} file ({short_message(exc)})") from None
     return _checked(z, pixel_size or ps, origin, src, meta)
+
+
+def check_pixel_size(value, src: str | None, key: str) -> float:
+    """``value`` as a pixel size (nm) within ``MIN_PIXEL_SIZE`` to ``MAX_PIXEL_SIZE``; else
+    InputError naming ``src`` and ``key``."""
+    ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
+    if not (ok and math.isfinite(value) and MIN_PIXEL_SIZE <= value <= MAX_PIXEL_SIZE):
+        what = "a positive number" if not (ok and value > 0) else "a pixel size"
+        raise InputError(src, key, f"must be {what} from {MIN_PIXEL_SIZE:g} to {MAX_PIXEL_SIZE:g} nm, "
+                                   f"got {value!r}")
+    return float(value)
 
 
 def _checked(z: np.ndarray, ps: float, origin, src: str, meta: dict) -> HeightImage:
     if z.ndim != 2 or min(z.shape) < 2:
         raise InputError(src, None, f"expected a 2-D image of at least 2 x 2 pixels, got shape {z.shape}")
-    if not np.isfinite(z).any():
+    if z.size > MAX_PIXELS:
+        raise InputError(src, None, f"{z.shape[0]} x {z.shape[1]} pixels; at most {MAX_PIXELS} "
+                                    "(MAX_PIXELS, 4096 x 4096) are read")
+    finite = np.isfinite(z)
+    valid = int(np.count_nonzero(finite))
+    if not valid:
         raise InputError(src, None, "the image has no finite height")
-    if not (math.isfinite(ps) and ps > 0):
-        raise InputError(src, "pixel_size", f"must be positive, got {ps!r}")
+    invalid = 1.0 - valid / z.size
+    if invalid > MAX_INVALID_SHARE:
+        raise InputError(src, None, f"{invalid:.0%} of the pixels have no finite height (NaN or "
+                                    f"infinity); at most {MAX_INVALID_SHARE:.0%} may")
+    top = float(np.max(np.abs(z[finite])))
+    if top > MAX_HEIGHT:
+        raise InputError(src, None, f"heights reach {top:.3g} nm; at most {MAX_HEIGHT:g} nm (1 mm) is read "
+                                    "(a wrong unit?)")
+    check_pixel_size(ps, src, "pixel_size")
     return HeightImage(np.ascontiguousarray(z, dtype=float), float(ps),
                        (float(origin[0]), float(origin[1])), src, meta)
+
+
+def image_warnings(image: HeightImage) -> list[str]:
+    """What a user should know about an image read (one line each, naming its source):
+    pixels without a finite height from ``WARN_INVALID_SHARE`` of the image on."""
+    n = image.height.size
+    invalid = n - int(np.count_nonzero(np.isfinite(image.height)))
+    if invalid and invalid / n >= WARN_INVALID_SHARE:
+        return [f"{image.source or 'image'}: {invalid} of {n} pixels ({invalid / n:.0%}) have no finite "
+                "height (NaN or infinity); objects over them are missed or cut"]
+    return []
 
 
 def save_height_image(image: HeightImage, path: str | os.PathLike) -> None:

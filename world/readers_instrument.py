@@ -9,12 +9,17 @@ problem the user can act on (no such channel, wrong unit) is an
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from nanoasm.errors import InputError
+
+from .limits import MAX_PIXELS
 
 #: Channels tried, in order, when none is given.
 DEFAULT_CHANNELS = {
@@ -22,6 +27,28 @@ DEFAULT_CHANNELS = {
     "ibw": ("HeightTracee", "HeightTrace", "Height"),
     "jpk": ("measuredHeight_trace", "height_trace"),
 }
+
+
+#: The standard-library loggers of the readers' libraries, silenced while they read: their
+#: complaints about a bad file ("invalid offset to first page") would print before the one
+#: line that says what is wrong.
+LIBRARY_LOGGERS = ("tifffile", "igor2", "pySPM", "gwyfile", "AFMReader")
+
+
+@contextmanager
+def quiet_libraries() -> Iterator[None]:
+    """Silence :data:`LIBRARY_LOGGERS` (and their children that log through them) for the
+    duration; their levels are put back after."""
+    saved = {}
+    for name in LIBRARY_LOGGERS:
+        logger = logging.getLogger(name)
+        saved[name] = logger.level
+        logger.setLevel(logging.CRITICAL + 1)
+    try:
+        yield
+    finally:
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)
 
 
 def short_message(exc: BaseException) -> str:
@@ -60,17 +87,46 @@ def read_stp(path: Path, src: str, channel: str | None):
     return np.flipud(np.asarray(z, dtype=float)), float(px), (0.0, 0.0), {"format": "stp"}
 
 
+def _check_tiff(path: Path, src: str) -> None:
+    """A JPK file is a TIFF: refuse one with no page, or a page beyond the pixel budget,
+    before AFMReader decodes anything (a compressed page could be a bomb)."""
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        if not len(tif.pages):
+            raise InputError(src, None, "not a JPK file (no image in the TIFF)")
+        for i, page in enumerate(tif.pages):
+            n = math.prod(getattr(page, "shape", ()) or (0,))
+            if n > MAX_PIXELS:
+                raise InputError(src, None, f"TIFF page {i} declares {n} pixels; at most {MAX_PIXELS} "
+                                            "(MAX_PIXELS, 4096 x 4096) are read")
+
+
 def read_jpk(path: Path, src: str, channel: str | None):
+    _check_tiff(path, src)
     jpk = _afmreader("jpk")
     z, px, name = _with_channels(lambda p, c: jpk.load_jpk(p, c), path, src, "jpk", channel)
     return np.flipud(z), px, (0.0, 0.0), {"format": "jpk", "channel": name}
 
 
-def read_spm(path: Path, src: str, channel: str | None):
-    # pySPM reads the header until "*File list end" and loops forever without it.
+#: The line that ends a Bruker header: pySPM reads lines until one is exactly this (after
+#: dropping backslashes and trailing white space), and loops forever without it.
+SPM_HEADER_END = b"*File list end"
+#: How far into a Bruker file its header end is looked for (bytes).
+SPM_HEADER_MAX = 4 * 1024 * 1024
+
+
+def _has_header_end(path: Path) -> bool:
     with open(path, "rb") as fh:
-        head = fh.read(4 * 1024 * 1024)
-    if b"*File list end" not in head:
+        head = fh.read(SPM_HEADER_MAX + 1)
+    lines = head.split(b"\n")
+    if len(head) > SPM_HEADER_MAX:
+        lines = lines[:-1]              # the last line may go on beyond what was read
+    return any(line.rstrip().replace(b"\\", b"") == SPM_HEADER_END for line in lines)
+
+
+def read_spm(path: Path, src: str, channel: str | None):
+    if not _has_header_end(path):
         raise InputError(src, None, "not a Bruker .spm file (no header end marker)")
     spm = _afmreader("spm")
     z, px, name = _with_channels(lambda p, c: spm.load_spm(p, c), path, src, "spm", channel)

@@ -23,6 +23,8 @@ import numpy as np
 
 from nanoasm.errors import InputError
 
+from .limits import MAX_PIXELS
+
 #: nm per unit.
 UNITS = {"m": 1e9, "mm": 1e6, "um": 1e3, "µm": 1e3, "μm": 1e3, "nm": 1.0, "pm": 1e-3,
          "a": 0.1, "å": 0.1, "angstrom": 0.1}
@@ -38,8 +40,11 @@ def _unit(src: str, name: str) -> float:
     return UNITS[u]
 
 
-def _rows(text: str, src: str) -> tuple[list[list[float]], list[str]]:
+def _rows(text: str, src: str, per_pixel: int = 1) -> tuple[list[list[float]], list[str]]:
+    """The numbers of every line, and the comments; at most ``MAX_PIXELS`` pixels of
+    ``per_pixel`` numbers each (refused as soon as there are more)."""
     rows, comments = [], []
+    count, limit = 0, MAX_PIXELS * per_pixel
     for lineno, line in enumerate(text.splitlines(), start=1):
         s = line.strip()
         if not s:
@@ -54,6 +59,10 @@ def _rows(text: str, src: str) -> tuple[list[list[float]], list[str]]:
                 comments.append("# " + s)
                 continue
             raise InputError(src, f"line {lineno}", "not a list of numbers") from None
+        count += len(rows[-1])
+        if count > limit:
+            raise InputError(src, f"line {lineno}", f"more than {MAX_PIXELS} pixels (MAX_PIXELS, 4096 x 4096); "
+                                                    "no more are read")
     if not rows:
         raise InputError(src, None, "no numbers found")
     return rows, comments
@@ -88,7 +97,7 @@ def parse_matrix(text: str, src: str, pixel_size: float | None) -> tuple[np.ndar
 def parse_xyz(text: str, src: str, pixel_size: float | None
               ) -> tuple[np.ndarray, float, tuple[float, float]]:
     """Heights (nm, row 0 at the bottom), pixel size and origin (nm) of an XYZ list."""
-    rows, comments = _rows(text, src)
+    rows, comments = _rows(text, src, per_pixel=3)
     if {len(r) for r in rows} != {3}:
         raise InputError(src, None, "an XYZ file needs exactly three numbers per line")
     pts = np.array(rows, dtype=float)

@@ -27,6 +27,7 @@ from nanoasm.errors import InputError
 from nanoasm.instrument import HeightImage
 from nanoasm.param import check_number
 from nanoasm.world.environment import Environment, EnvObject, EnvObstacle
+from nanoasm.world.limits import MAX_HEIGHT, MAX_PIXEL_SIZE, MAX_TIP_RADIUS, MIN_PIXEL_SIZE
 from nanoasm.world.tipimage import Tip
 
 from .grains import EIGHT, label_grains, mask_polygon, touches_border
@@ -86,7 +87,8 @@ def identify(image: HeightImage, *, cut: float | None = None, min_area: float | 
         Least top height (nm) of a region. By default none with an explicit ``cut``;
         with the automatic cut, 3 sigmas above it (substrate texture stays out).
     pixel_size : float, optional
-        Overrides the image's pixel size (nm).
+        Overrides the image's pixel size (nm); either must lie within
+        :data:`~nanoasm.world.limits.MIN_PIXEL_SIZE` to ``MAX_PIXEL_SIZE``.
     tip_radius, tip_half_angle : float
         The tip (nm, degrees): first guess of the tip radius, which is refined per
         object, and the fixed cone half angle.
@@ -103,7 +105,8 @@ def identify(image: HeightImage, *, cut: float | None = None, min_area: float | 
     Raises
     ------
     InputError
-        For an option out of range or an image with no finite height.
+        For an option out of range, an image with no finite height or with heights
+        beyond :data:`~nanoasm.world.limits.MAX_HEIGHT`.
     """
     return analyse(image, cut=cut, min_area=min_area, min_height=min_height, pixel_size=pixel_size,
                    tip_radius=tip_radius, tip_half_angle=tip_half_angle, rod_limit=rod_limit,
@@ -119,8 +122,8 @@ def analyse(image: HeightImage, *, cut: float | None = None, min_area: float | N
     _check_option(src, "cut", cut, positive=True)
     _check_option(src, "min_area", min_area, nonnegative=True)
     _check_option(src, "min_height", min_height, nonnegative=True)
-    _check_option(src, "pixel_size", pixel_size, positive=True)
-    _check_option(src, "tip_radius", tip_radius, positive=True)
+    _check_option(src, "pixel_size", pixel_size, lo=MIN_PIXEL_SIZE, hi=MAX_PIXEL_SIZE)
+    _check_option(src, "tip_radius", tip_radius, positive=True, hi=MAX_TIP_RADIUS)
     if not (isinstance(tip_half_angle, (int, float)) and 0 < tip_half_angle < 90):
         raise InputError(src, "tip_half_angle", f"must be in (0, 90) degrees, got {tip_half_angle!r}")
     _check_option(src, "rod_limit", rod_limit, lo=1)
@@ -128,8 +131,14 @@ def analyse(image: HeightImage, *, cut: float | None = None, min_area: float | N
         raise InputError(src, "levelling", "plane_order must be 0-3 and line_order 0-2")
     if pixel_size is not None:
         image = replace(image, pixel_size=float(pixel_size))
-    if not np.isfinite(image.height).any():
+    _check_option(src, "pixel_size", image.pixel_size, lo=MIN_PIXEL_SIZE, hi=MAX_PIXEL_SIZE)
+    finite = np.isfinite(image.height)
+    if not finite.any():
         raise InputError(src, None, "the image has no finite height")
+    top = float(np.max(np.abs(image.height[finite])))
+    if top > MAX_HEIGHT:
+        raise InputError(src, None, f"heights reach {top:.3g} nm; at most {MAX_HEIGHT:g} nm (1 mm) are "
+                                    "identified (a wrong unit?)")
 
     lev = level(image.height, plane_order=plane_order, line_order=line_order)
     auto_cut = cut is None
