@@ -9,11 +9,13 @@ read back without pickles.
 from __future__ import annotations
 
 import io
+import math
 import zipfile
 
 import numpy as np
 
 from nanoasm.instrument import HeightImage
+from nanoasm.world.limits import MAX_PIXELS
 
 #: The attachment's name in a run log.
 FULL_SCAN_ATTACHMENT = "full_scan.npz"
@@ -27,9 +29,28 @@ def full_scan_bytes(doc: dict) -> bytes:
     return buf.getvalue()
 
 
+#: The most values each array of the attachment may declare (checked in its header first).
+_SIZES = {"height": MAX_PIXELS, "pixel_size": 1, "origin": 2}
+
+
+def _declared_sizes_ok(data: bytes) -> None:
+    """Refuse, before any array is read, an attachment whose arrays declare more values
+    than a full scan has (a zip bomb's header is a few bytes)."""
+    with zipfile.ZipFile(io.BytesIO(data)) as zf:
+        for key, most in _SIZES.items():
+            with zf.open(key + ".npy") as fh:
+                version = np.lib.format.read_magic(fh)
+                read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0)
+                shape = read(fh)[0]
+            if math.prod(shape) > most:
+                raise ValueError(f"{key} declares {math.prod(shape)} values; at most {most}")
+
+
 def full_scan_image(data: bytes) -> HeightImage:
     """The image :func:`full_scan_bytes` wrote; ValueError when the bytes are not one."""
     try:
+        _declared_sizes_ok(data)
         with np.load(io.BytesIO(data), allow_pickle=False) as f:
             height, px, origin = f["height"], float(f["pixel_size"]), f["origin"]
     except (OSError, KeyError, ValueError, EOFError, zipfile.BadZipFile) as err:

@@ -336,3 +336,31 @@ def test_a_5000_digit_integer_is_one_line(tmp_path, capsys, suffix):
         path.write_text('{"format": "nanoasm.layout/1", "area": [5000, ' + "9" * 5000 + "]}")
     line = _refused(_cli(capsys, "layout", "check", path), path, "5000 digits")
     assert "set_int_max_str_digits" not in line
+
+
+def test_a_log_attachment_declaring_a_huge_scan_is_refused_before_it_is_read():
+    """A resumed run reads the full scan back from its log: an attachment whose height
+    array declares 30000 x 30000 values (a few bytes of header) is refused, never loaded."""
+    import io
+    import time
+    import zipfile
+
+    import numpy as np
+
+    from nanoasm.executor.scan_attachment import full_scan_bytes, full_scan_image
+
+    good = full_scan_bytes({"height": np.zeros((4, 4)), "pixel_size": 10.0, "origin": (0.0, 0.0)})
+    assert full_scan_image(good).height.shape == (4, 4)
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+        with zf.open("height.npy", "w") as fh:
+            np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False,
+                                                      "shape": (30000, 30000)})
+            fh.write(b"\0" * (1 << 20))
+        for key, arr in (("pixel_size", np.float64(10.0)), ("origin", np.zeros(2))):
+            with zf.open(key + ".npy", "w") as fh:
+                np.lib.format.write_array(fh, np.asarray(arr))
+    t0 = time.perf_counter()
+    with pytest.raises(ValueError, match="declares 900000000 values"):
+        full_scan_image(buf.getvalue())
+    assert time.perf_counter() - t0 < 2.0
