@@ -46,6 +46,11 @@ class CreepModelParams:
         the creep per unit ``c`` of the kept moves, which widens the predicted offset
         and the measurement noise after a large move instead of gating every
         measurement out when ``c`` is off. 0 treats the input as exact.
+    tau_std : float
+        Standard deviation of ``ln τ`` (``>= 0``): how well the time constant is known.
+        Seconds after a move ``s`` its creep is ``c s (log10 t - log10 τ)``: an error of
+        ``τ`` is an offset ``c s δ(ln τ) / ln 10`` along the step that stays, so each
+        move widens the estimate by that much (see ``DriftFilter.record_move``).
     """
 
     amplitude: float = param(0.01, "1/decade", "creep per decade of time, fraction of the step",
@@ -56,6 +61,7 @@ class CreepModelParams:
     max_moves: int = param(256, "-", "most moves kept", lo=1)
     amplitude_std: float = param(0.0, "1/decade", "standard deviation of the amplitude",
                                  nonnegative=True)
+    tau_std: float = param(0.0, "-", "standard deviation of ln tau", nonnegative=True, hi=2.0)
 
     def __post_init__(self) -> None:
         validate(self)

@@ -330,10 +330,21 @@ class DriftFilter:
     def record_move(self, t: float, step) -> bool:
         """Register a scanner move by ``step`` (nm, (2,)) completed at ``t`` (s).
 
-        Returns whether it is long enough to creep (``creep.min_step``).
+        With ``creep.tau_std``, a move that creeps widens the offset along its step by
+        ``c |s| tau_std / ln 10`` (the lasting offset an error of the time constant leaves,
+        e.g. 11 nm for 10 µm at c = 0.01, tau_std = 0.25), at the filter's present time:
+        the next reference places it. Returns whether it is long enough to creep
+        (``creep.min_step``).
         """
         tau, _ = self._relative(t)
-        return self.creep.record(tau, step)
+        kept = self.creep.record(tau, step)
+        c, sd = self.params.creep.amplitude, self.params.creep.tau_std
+        if kept and c > 0 and sd > 0:
+            g = np.zeros((self._x.shape[0], 1))
+            g[:2, 0] = np.asarray(step, float).reshape(2) * (c * sd / math.log(10.0))
+            L = tria(np.hstack([self._L, g]))
+            self._commit(self._tau, 0.0, self._x, L, self._x, L, self._noise_sqrt(0.0), "move")
+        return kept
 
     def measure(self, t: float, z, R=None, *, label: str | None = None) -> Measurement:
         """Fold one measured offset ``z`` (nm, (2,)) at ``t`` into the estimate, unless the

@@ -33,6 +33,19 @@ def error_now(est) -> float:
     return float(est.scan.theta[-1])
 
 
+def tau_spread(est, t: float) -> np.ndarray:
+    """How far (nm, 1σ, along each axis with its sign) the creep of the moves recorded so
+    far is off at ``t`` for the time constant's uncertainty (``creep.tau_std`` of
+    ``ln τ``): ``c σ / ln 10 Σ s_i x_i / (1 + x_i)``, ``x_i`` the time since move ``i``
+    in units of ``τ``."""
+    p = est.params.creep
+    h = est.filter.creep
+    if not len(h) or p.tau_std == 0:
+        return np.zeros(2)
+    x = np.maximum(t - est.epoch - h.times, 0.0) / p.tau
+    return p.amplitude * p.tau_std / np.log(10.0) * ((x / (1.0 + x)) @ h.steps)
+
+
 def compensation_cov(est, t0: float, t1: float) -> np.ndarray:
     """Covariance (nm²) of the error in ``offset(t1) - offset(t0)``: the creep between the
     two at an amplitude known to :func:`rel_var`, and the velocity's uncertainty over the
@@ -74,4 +87,4 @@ def final_travel(dac, config):
     return dac.t0 + k / config.sample_rate, dac.render(np.array([k])).nm[0, :2]
 
 
-__all__ = ["compensation_cov", "error_now", "final_travel", "rel_var", "with_creep"]
+__all__ = ["compensation_cov", "error_now", "final_travel", "rel_var", "tau_spread", "with_creep"]

@@ -187,7 +187,9 @@ def bootstrap(ctx: RunContext):
     squares, they start the drift filter and take every other object of the first scan
     out of its row's drift. Each reference sharpens the model that sizes the next one's
     lines; the variance of a measured component is taken as :data:`BOOTSTRAP_VAR` plus the
-    located position's own (which holds what the lines' creep compensation may err by).
+    located position's own (which holds what the lines' creep compensation may err by)
+    and what the creep's time constant leaves of the travels so far
+    (:func:`~.creep_terms.tau_spread`).
     """
     drift = ctx.drift
     if not drift.bootstraps:
@@ -203,8 +205,9 @@ def bootstrap(ctx: RunContext):
         if scanned is None:
             continue
         rows, t, seen = scanned
+        spread = creep_terms.tau_spread(drift, t)       # the creep's time constant is known to ±30 %
         for n, z, tau1, tau0, creep1, var in rows:
-            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1)
+            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var + float(n @ spread) ** 2, creep1=creep1)
         if seen is not None:
             seen_objects.append(seen)
         used += 1

@@ -41,7 +41,7 @@ SCAN_STATICS = 4                 # θ's thermal part; ε rides in the filter's l
 def filter_params(options: ExecOptions) -> DriftFilterParams:
     """The drift filter's parameters for a run's options: the nominal creep, with the
     uncertainty of its amplitude (a real scanner's creep is known to about ±30 %)."""
-    creep = CreepModelParams(amplitude_std=options.creep_amplitude_std)
+    creep = CreepModelParams(amplitude_std=options.creep_amplitude_std, tau_std=options.creep_tau_std)
     return DriftFilterParams(q=options.drift_q, q_offset=options.drift_q_offset, offset_std=1.0,
                              creep=creep)
 

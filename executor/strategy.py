@@ -86,6 +86,9 @@ class ExecOptions:
     creep_amplitude_std : float
         Standard deviation of the creep amplitude the drift filter assumes, per decade
         (the nominal amplitude is 0.01; a real scanner's is known to about ±30 %).
+    creep_tau_std : float
+        Standard deviation of the logarithm of the creep time constant the drift filter
+        assumes (±30 % is about 0.2): each long move widens the estimate along its step.
     push_heading_std : float
         Scatter of a pushed particle's direction of motion about the tip's, degrees: with
         ``capture_angle`` it sets the legs of a long push (:mod:`.push_legs`).
@@ -143,6 +146,8 @@ class ExecOptions:
                                      positive=True)
     creep_amplitude_std: float = param(0.002, "1/decade", "standard deviation of the creep amplitude "
                                        "the drift filter assumes", nonnegative=True)
+    creep_tau_std: float = param(0.2, "-", "standard deviation of the creep time constant's logarithm "
+                                 "the drift filter assumes", nonnegative=True, hi=2.0)
     push_heading_std: float = param(2.0, "deg", "scatter of a pushed particle's direction about the tip's",
                                     positive=True, hi=45.0)
     capture_angle: float = param(45.0, "deg", "half-angle of the cone within which the tip carries a particle",

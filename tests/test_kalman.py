@@ -4,6 +4,7 @@ consistency, gating, creep, RTS smoothing, determinism."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -1004,3 +1005,25 @@ def test_the_creep_amplitude_error_may_come_with_the_prior_correlated():
         f.measure_projected(20.0, [0.0], [[1.0, 0.0]], [[1.0]], static=np.zeros((1, 3)))
     back = DriftFilter.from_state(f.params, f.state_dict())
     assert back.statics == 2 and np.allclose(back.x, f.x) and np.allclose(back.P, f.P)
+
+
+def test_a_long_move_widens_the_offset_along_its_step_for_the_creep_time_constant():
+    """An error of τ leaves c s δ(ln τ) / ln 10 along a step s once the move has crept a
+    while: with tau_std, each recorded move adds that much variance along its step, at
+    the filter's present time; a short move (no creep) and tau_std = 0 add none."""
+    creep = CreepModelParams(amplitude=0.01, tau=0.1, min_step=500.0, tau_std=0.25)
+    f = DriftFilter(DriftFilterParams(creep=creep), x0=np.zeros(4), P0=np.diag([4.0, 4.0, 1e-4, 1e-4]))
+    before, t0 = f.P.copy(), f.time
+    assert f.record_move(10.0, (6000.0, 8000.0))
+    grow = (0.01 * 0.25 * 10000.0 / math.log(10.0)) ** 2           # 10.9 nm, squared
+    u = np.array([0.6, 0.8])
+    assert u @ f.P[:2, :2] @ u == pytest.approx(4.0 + grow)
+    v = np.array([-0.8, 0.6])
+    assert v @ f.P[:2, :2] @ v == pytest.approx(4.0)
+    assert f.time == t0 and np.allclose(f.P[2:, 2:], before[2:, 2:])
+    assert not f.record_move(11.0, (100.0, 0.0))
+    assert u @ f.P[:2, :2] @ u == pytest.approx(4.0 + grow)
+    plain = DriftFilter(DriftFilterParams(creep=replace(creep, tau_std=0.0)), x0=np.zeros(4),
+                        P0=np.diag([4.0, 4.0, 1e-4, 1e-4]))
+    plain.record_move(10.0, (6000.0, 8000.0))
+    np.testing.assert_allclose(plain.P, before)
