@@ -59,14 +59,23 @@ def _same_file(a: Path, b: Path) -> bool:
 
 
 def _outputs_apart(outputs: list[tuple[str, Path | None]], inputs: list[tuple[str, Path | None]]) -> None:
-    """Refuse, before anything is read or written, an output that is one of the inputs:
-    ``outputs`` and ``inputs`` pair the option (or argument) naming a file with it (None:
-    not given). The one line names the output, its option and the input it would overwrite."""
+    """Refuse, before anything is read or written, an output that is one of the inputs, or
+    whose folder is missing or not writable: ``outputs`` and ``inputs`` pair the option
+    (or argument) naming a file with it (None: not given). The one line names the output,
+    its option and the input it would overwrite or the folder."""
     for option, out in outputs:
         for source, given in inputs:
             if out is not None and given is not None and _same_file(out, given):
                 raise InputError(str(out), option, f"is also an input ({source}); an output never "
                                                    "overwrites an input")
+    for option, out in outputs:                 # and where it goes can take it, before the work
+        if out is None:
+            continue
+        parent = out.parent if str(out.parent) else Path(".")
+        if not parent.is_dir():
+            raise InputError(str(out), option, f"output folder {str(parent)!r} does not exist")
+        if not os.access(parent, os.W_OK | os.X_OK):
+            raise InputError(str(out), option, f"output folder {str(parent)!r} is not writable")
 
 
 def _version(value: bool) -> None:
@@ -219,6 +228,7 @@ def scene_random(
 
     if output.suffix.lower() not in NATIVE:
         raise InputError(str(output), None, "output must end in .toml or .json")
+    _outputs_apart([("-o", output)], [])
     if seed < 0:
         raise InputError(None, "--seed", f"must not be negative, got {seed}")
     drift_params = None if drift is None else _options(DriftParams, {"velocity": "--drift"},
@@ -620,8 +630,7 @@ def sweep_cmd(
     if output is not None:
         if output.suffix.lower() not in (".csv", ".json"):
             raise cx.BadParameter("must end in .csv or .json", param_hint="'-o'")
-        if not (output.parent if str(output.parent) else Path(".")).is_dir():
-            raise InputError(str(output), None, f"output folder {str(output.parent)!r} does not exist")
+        _outputs_apart([("-o", output)], [])
     try:
         rows = _with_progress(f"sweep: {len(cases)} dry-run(s)", lambda progress: sw.sweep(
             cases, workers=workers, scheduler=scheduler, progress=progress))

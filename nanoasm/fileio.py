@@ -154,14 +154,18 @@ def write_atomic(path: str | os.PathLike, data: str | bytes, mode: int | None = 
     process's umask).
 
     The bytes go to a temporary file in the same folder, are flushed to disk and then
-    renamed over ``path``; a crash half-way leaves no partial output.
+    renamed over ``path``; a crash half-way leaves no partial output. A folder that is
+    missing or cannot be written, or a full disk, is an :class:`InputError` (one line).
     """
     p = Path(path)
     parent = p.parent if str(p.parent) else Path(".")
     if not parent.is_dir():
         raise InputError(str(path), None, f"output folder {str(parent)!r} does not exist")
     payload = data.encode("utf-8") if isinstance(data, str) else data
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=parent)
+    except OSError as exc:
+        raise InputError(str(path), None, f"cannot write in {str(parent)!r}: {exc.strerror or exc}") from None
     try:
         # mkstemp makes the file private; an output gets the mode open() would give it
         os.chmod(tmp, mode if mode is not None else 0o666 & ~_umask())
@@ -170,11 +174,13 @@ def write_atomic(path: str | os.PathLike, data: str | bytes, mode: int | None = 
             fh.flush()
             os.fsync(fh.fileno())
         os.replace(tmp, p)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except OSError:
             pass
+        if isinstance(exc, OSError):          # a full disk, a folder gone read-only: one line
+            raise InputError(str(path), None, f"cannot write: {exc.strerror or exc}") from None
         raise
 
 

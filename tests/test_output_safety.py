@@ -272,3 +272,37 @@ def test_sigterm_outside_a_run_is_the_same_line(monkeypatch, capsys):
     code, out, err = run(capsys, "layout", "check", example("bowtie.toml"))
     assert code == 143 and out == "" and err == "nanoasm: terminated\n"
     assert signal.getsignal(signal.SIGTERM) == previous        # restored after the command
+
+
+def test_an_output_into_a_missing_folder_is_refused_before_the_run(tmp_path, capsys):
+    """dry-run --report into a folder that does not exist was found out only after the
+    run, losing it: now one line at the start, exit 1, nothing run."""
+    import time
+
+    from nanoasm.cli import main
+
+    t0 = time.perf_counter()
+    code = main(["dry-run", "--report", str(tmp_path / "nowhere" / "r.json")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and len(err) == 1 and "--report" in err[0] and "does not exist" in err[0]
+    assert time.perf_counter() - t0 < 5.0                 # the bundled dry-run takes longer
+    assert main(["scene", "random", "-o", str(tmp_path / "nowhere" / "s.toml")]) == 1
+    assert "does not exist" in capsys.readouterr().err
+
+
+def test_a_full_disk_is_one_line_and_leaves_no_file(tmp_path, monkeypatch):
+    import errno
+    import os
+
+    import pytest
+
+    from nanoasm.errors import InputError
+    from nanoasm.fileio import write_atomic
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", full)
+    with pytest.raises(InputError, match="cannot write: No space left on device"):
+        write_atomic(tmp_path / "out.json", "{}")
+    assert list(tmp_path.iterdir()) == []
