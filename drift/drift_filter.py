@@ -332,7 +332,7 @@ class DriftFilter:
 
         With ``creep.tau_std``, a move that creeps widens the offset along its step by
         ``c |s| tau_std / ln 10`` (the lasting offset an error of the time constant leaves,
-        e.g. 11 nm for 10 µm at c = 0.01, tau_std = 0.25), at the filter's present time:
+        e.g. 8.7 nm for 10 µm at c = 0.01, tau_std = 0.2), at the filter's present time:
         the next reference places it. Returns whether it is long enough to creep
         (``creep.min_step``).
         """

@@ -15,22 +15,14 @@ from __future__ import annotations
 import numpy as np
 
 
-def rel_var(est) -> float:
-    """Variance of the creep amplitude relative to the nominal one, as now known: the
-    filter's learnt amplitude once it runs, the full scan's model's before."""
-    c = est.params.creep.amplitude
-    if est.filter.statics and est.filter.learn_creep and c > 0:
-        return float(est.filter.P[-1, -1]) / (c * c)
-    return float(est.scan.cov[-1, -1])
-
-
-def error_now(est) -> float:
+def amplitude_error(est) -> tuple[float, float]:
     """The creep amplitude's relative error as estimated now (what a scan's line
-    compensation used)."""
+    compensation used) and its variance: the filter's learnt ``δc / c`` once it runs,
+    the full scan's model's ``ε`` before."""
     c = est.params.creep.amplitude
     if est.filter.statics and est.filter.learn_creep and c > 0:
-        return float(est.filter.x[-1]) / c
-    return float(est.scan.theta[-1])
+        return float(est.filter.x[-1]) / c, float(est.filter.P[-1, -1]) / (c * c)
+    return float(est.scan.theta[-1]), float(est.scan.cov[-1, -1])
 
 
 def tau_spread(est, t: float) -> np.ndarray:
@@ -46,16 +38,17 @@ def tau_spread(est, t: float) -> np.ndarray:
     return p.amplitude * p.tau_std / np.log(10.0) * ((x / (1.0 + x)) @ h.steps)
 
 
-def compensation_cov(est, t0: float, t1: float) -> np.ndarray:
-    """Covariance (nm²) of the error in ``offset(t1) - offset(t0)``: the creep between the
-    two at an amplitude known to :func:`rel_var`, and the velocity's uncertainty over the
-    time between (20 nm 1σ on a pattern's second line 0.7 s after a 7 µm travel, the
-    amplitude known to 20 %)."""
+def compensation(est, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+    """The creep (nm, nominal amplitude) within ``offset(t1) - offset(t0)``, and the
+    covariance (nm²) of that difference's error: the creep at the amplitude's
+    uncertainty (:func:`amplitude_error`) and the velocity's over the time between. On
+    wide seed 1's first bootstrap reference, 66 nm of nominal creep ran between two lines
+    0.66 s apart after a 7.5 µm travel: 13 nm 1σ with the amplitude known to 20 %."""
     ep = est.epoch
     d = est.creep_offset(t1 - ep) - est.creep_offset(t0 - ep)
     dt = t1 - t0
     vel = est.filter.P[2:4, 2:4] if est.filter.statics else est.scan.velocity_at(t1 - ep)[1]
-    return rel_var(est) * np.outer(d, d) + dt * dt * np.asarray(vel, float)
+    return d, amplitude_error(est)[1] * np.outer(d, d) + dt * dt * np.asarray(vel, float)
 
 
 def with_creep(est, z, static, creep_sens):
@@ -87,4 +80,4 @@ def final_travel(dac, config):
     return dac.t0 + k / config.sample_rate, dac.render(np.array([k])).nm[0, :2]
 
 
-__all__ = ["compensation_cov", "error_now", "final_travel", "rel_var", "tau_spread", "with_creep"]
+__all__ = ["amplitude_error", "compensation", "final_travel", "tau_spread", "with_creep"]

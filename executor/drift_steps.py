@@ -39,7 +39,7 @@ def fold(ctx: RunContext, obj_id: str, scanner_at, cov, t: float, *, reference: 
     local scan that located it, whose lines' creep compensation the estimate models);
     False only when the estimate's gate rejected it (it moved on its own)."""
     measure = ctx.drift.measure_reference if reference else ctx.drift.measure
-    sens = scan.creep_sensitivity() if hasattr(scan, "creep_sensitivity") else None
+    sens = None if scan is None else scan.creep_sensitivity()
     folded = measure(obj_id, scanner_at, cov, t, ctx.refs, ctx.ledger.pushed, ctx.belief.lost, sens)
     if folded is not None:
         ctx.log_drift(t)
@@ -245,11 +245,12 @@ def _bootstrap_rows(ctx: RunContext, kind: str, rid: str, seen_t: float):
         body, cov, t, res = found
         # D(t) - D(τ) less the creep modelled now and then; the lines' compensation
         # erred by the creep amplitude's error times sens
-        creep = drift.creep_offset(t - ep) - drift.scan.creep_at(seen_t - ep)
-        sens = res.creep_sensitivity() if hasattr(res, "creep_sensitivity") else np.zeros(2)
+        now = drift.creep_offset(t - ep)
+        creep = now - drift.scan.creep_at(seen_t - ep)
+        sens = res.creep_sensitivity()
         z = (np.asarray(body.at) - drift.origin - np.asarray(ctx.belief[rid].at) - creep
-             + creep_terms.error_now(drift) * sens)
-        now = drift.creep_offset(t - ep) + sens
+             + creep_terms.amplitude_error(drift)[0] * sens)
+        now = now + sens
         rows = [(np.array(e), float(z @ e), t - ep, seen_t - ep, now, float(np.asarray(e) @ cov @ e))
                 for e in ((1.0, 0.0), (0.0, 1.0))]
         return rows, t, (rid, body, cov, t)
@@ -263,7 +264,7 @@ def _bootstrap_rows(ctx: RunContext, kind: str, rid: str, seen_t: float):
     feat = ctx.landmarks.features[rid]
     now = drift.creep_offset(t - ep)
     lc = res.line_creep if res.line_creep is not None else np.zeros((len(placed), 2))
-    eps = creep_terms.error_now(drift)
+    eps = creep_terms.amplitude_error(drift)[0]
     rows = [(n, float(n @ (p + o * n - drift.origin - np.asarray(site.point, float) - now
                            + drift.scan.creep_at(ts - ep) + eps * d)), t - ep, ts - ep, now + d,
              float(n @ ctx.scan_comp @ n) + step.std ** 2)

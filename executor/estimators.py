@@ -47,8 +47,7 @@ class DriftEstimator(Protocol):
     uses_landmarks: bool
 
     def offset(self, t: float) -> np.ndarray: ...
-    def compensation_cov(self, t0: float, t1: float) -> np.ndarray: ...
-    def compensation_creep(self, t0: float, t1: float) -> np.ndarray: ...
+    def compensation(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]: ...
     def velocity(self) -> np.ndarray: ...
     def unskew(self, at: np.ndarray, tau: float) -> np.ndarray: ...
     def radius(self, t: float, seen, skew_tau: float | None, options: ExecOptions) -> float: ...
@@ -94,15 +93,12 @@ class NoDrift:
     def velocity(self) -> np.ndarray:
         return np.zeros(2)
 
-    def compensation_cov(self, t0: float, t1: float) -> np.ndarray:
-        """Covariance (nm²) of the error in ``offset(t1) - offset(t0)``, by which a scan
-        pattern's line at ``t1`` is shifted to see the sample as it lay at ``t0``: none
-        is modelled here (the drift is not estimated, so its bound covers it)."""
-        return np.zeros((2, 2))
-
-    def compensation_creep(self, t0: float, t1: float) -> np.ndarray:
-        """The creep (nm, nominal amplitude) within ``offset(t1) - offset(t0)``: none here."""
-        return np.zeros(2)
+    def compensation(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        """The creep (nm, nominal amplitude) within ``offset(t1) - offset(t0)``, by which
+        a scan pattern's line at ``t1`` is shifted to see the sample as it lay at ``t0``,
+        and the covariance (nm²) of that shift's error: neither is modelled here (the
+        drift is not estimated, so its bound covers it)."""
+        return np.zeros(2), np.zeros((2, 2))
 
     def unskew(self, at: np.ndarray, tau: float) -> np.ndarray:
         """A full-scan position with its row's drift taken out (none known here)."""

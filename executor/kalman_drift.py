@@ -133,13 +133,10 @@ class Kalman:
             return self.scan.offset_cov(t - self.epoch) + self.filter.creep.cov(t - self.epoch)
         return np.asarray(self.filter.offset(self.clamp(t)).cov, float)
 
-    def compensation_cov(self, t0: float, t1: float) -> np.ndarray:
-        """Covariance (nm²) of the error in ``offset(t1) - offset(t0)`` (:mod:`.creep_terms`)."""
-        return creep_terms.compensation_cov(self, t0, t1)
-
-    def compensation_creep(self, t0: float, t1: float) -> np.ndarray:
-        """The creep (nm, nominal amplitude) within ``offset(t1) - offset(t0)``."""
-        return self.creep_offset(t1 - self.epoch) - self.creep_offset(t0 - self.epoch)
+    def compensation(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        """The creep within ``offset(t1) - offset(t0)`` and the covariance of that
+        difference's error (:func:`.creep_terms.compensation`)."""
+        return creep_terms.compensation(self, t0, t1)
 
     def sigma(self, t: float) -> float:
         """Standard deviation (nm) of the offset along its worst direction at ``t``."""

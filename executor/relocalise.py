@@ -175,7 +175,7 @@ def _window_offset(est, off, shift, new_rows, old_rows) -> tuple[float, float, n
     creep_now = np.mean([est.creep_offset(v) for v in s], axis=0) - est.creep_offset(t_mid - est.epoch)
     creep_then = np.mean([est.scan.creep_at(v) for v in taus], axis=0)
     z = off - est.origin + np.asarray(shift, float) + creep_then - est.creep_scale() * creep_now
-    return t_mid, float(tau), z, creep_terms.rel_var(est) * np.outer(creep_now, creep_now)
+    return t_mid, float(tau), z, creep_terms.amplitude_error(est)[1] * np.outer(creep_now, creep_now)
 
 
 def _centre(w) -> np.ndarray:

@@ -67,8 +67,8 @@ def scan_line(ctx: RunContext, a: np.ndarray, b: np.ndarray, n: int):
     if ctx.scan_ref is None:
         ctx.scan_ref = t_line
     shift = ctx.offset(t_line) - ctx.offset(ctx.scan_ref)
-    comp = ctx.drift.compensation_cov(ctx.scan_ref, t_line)
-    ctx.scan_creep.append(ctx.drift.compensation_creep(ctx.scan_ref, t_line))
+    creep, comp = ctx.drift.compensation(ctx.scan_ref, t_line)
+    ctx.scan_creep.append(creep)
     if np.trace(comp) > np.trace(ctx.scan_comp):
         ctx.scan_comp = comp
     a, b = a + shift, b + shift

@@ -104,6 +104,7 @@ class _Est:
         self.filter = SimpleNamespace(statics=0, learn_creep=False)   # still bootstrapping
         self.params = SimpleNamespace(creep=SimpleNamespace(amplitude=AMP))
         self.cov = np.diag([0.0, 0.0, 0.0, 0.0, 0.04])     # the amplitude known to 20 %
+        self.theta = np.zeros(5)
 
     def creep_offset(self, tau):
         return creep_offset(tau, [m[0] for m in self.moves], [m[1] for m in self.moves], AMP, TAU)
@@ -133,3 +134,24 @@ def test_a_window_measures_the_middle_of_its_scan_less_the_creep_curvature_over_
     # the first row's time, as before, would be off by the creep over the rows
     assert np.abs(z - (truth(t0) - v * 500.5)).max() > 10.0
     assert cov[0, 0] > 0 and cov[1, 1] == pytest.approx(0.0)
+
+
+def test_a_lines_compensation_carries_the_creep_between_and_its_uncertainty():
+    """Right after a 7.5 µm travel the nominal creep between a pattern's first line and
+    one 0.66 s later is 66 nm; with the amplitude known to 20 % (the bootstrap's prior)
+    that shift errs by 13 nm 1σ along the travel, plus the velocity's share."""
+    from nanoasm.executor.kalman_drift import Kalman
+    from nanoasm.executor.strategy import ExecOptions
+
+    est = Kalman((0.0, 0.0), 0.0, ExecOptions())
+    est.full_scan_done()
+    est.moved_to((0.0, 0.0), 100.0)
+    est.moved_to((7500.0, 0.0), 100.0)
+    d, cov = est.compensation(100.0, 100.66)
+    assert d[0] == pytest.approx(-0.01 * 7500.0 * np.log10(1.0 + 0.66 / 0.1)) and d[1] == 0.0
+    vel = est.scan.velocity_at(100.66)[1]
+    np.testing.assert_allclose(cov, 0.04 * np.outer(d, d) + 0.66 ** 2 * vel)
+    assert np.sqrt(cov[0, 0]) == pytest.approx(13.2, abs=0.3)
+    from nanoasm.executor.estimators import NoDrift
+    none = NoDrift((0.0, 0.0), 0.0).compensation(100.0, 100.66)
+    assert not np.any(none[0]) and not np.any(none[1])
