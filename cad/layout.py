@@ -22,9 +22,16 @@ from nanoasm.bodies import (
 )
 from nanoasm.fileio import Document, read_document
 from nanoasm.schema import Point, Table, check_format
+from nanoasm.world.limits import MAX_LAYOUT_SIDE
 
 FORMAT = "nanoasm.layout/1"
 KINDS = ("particle", "rod")
+
+#: Most targets a layout may have (checked before any is read). Every slot costs a check
+#: scan at the run's end and its object a few pushes with local scans around each, some
+#: 30 s of instrument time: 10 000 slots are about four days. Real layouts have tens to
+#: thousands; a dry-run of 100 000 ran out of 3 GB after 52 s (issue 15).
+MAX_TARGETS = 10_000
 
 Target = Body
 
@@ -111,6 +118,14 @@ def _tolerance(t: Table) -> Tolerance:
     )
 
 
+def _check_side(t: Table, area: Point) -> None:
+    """A working area no larger than a run can scan: each side at most ``MAX_LAYOUT_SIDE``."""
+    for side, name in zip(area, ("width", "height")):
+        if side > MAX_LAYOUT_SIDE:
+            t.fail("area", f"{name} {side:g} nm is more than a run can scan: at most {MAX_LAYOUT_SIDE:g} nm "
+                           "(MAX_LAYOUT_SIDE: 4096 pixels of the full scan's 10 nm)")
+
+
 def layout_from_dict(data: dict, source: str | None = None) -> Layout:
     """Validate a parsed layout document (TOML, JSON or an importer's output)."""
     check_format(data, source, FORMAT)
@@ -118,11 +133,14 @@ def layout_from_dict(data: dict, source: str | None = None) -> Layout:
     t.check_keys(required={"format", "area"}, optional={"name", "tolerance", "target", "keepout"})
     name = t.string("name", None)
     area = t.pair("area", names=("width", "height"), positive=True)
+    _check_side(t, area)
     tolerance = _tolerance(t)
 
     ttables = t.tables("target")
     if not ttables:
         t.fail("target", "a layout needs at least one [[target]]")
+    if len(ttables) > MAX_TARGETS:
+        t.fail("target", f"{len(ttables)} targets; a layout may have at most {MAX_TARGETS} (MAX_TARGETS)")
     targets = [body_from_table(tt, f"t{i}", KINDS)[0] for i, tt in enumerate(ttables, start=1)]
     check_unique_ids(ttables, targets)
 

@@ -160,7 +160,7 @@ class Assembly:
         """The pushes of ``ops`` from ``i`` on, with scans, corrections and replanning;
         a checkpoint after each."""
         ctx, opts, ledger = self.ctx, self.options, self.ctx.ledger
-        w_start, plan0 = time.perf_counter(), ledger.wall["plan"]
+        mark = (time.perf_counter(), ledger.wall["plan"])
         while i < len(ops):
             op = ops[i]
             if op.object in ctx.belief.lost:
@@ -197,9 +197,10 @@ class Assembly:
                     if extra:
                         ops[i:i] = extra
                         self.course.follow(self.environment(), extra, extend=True)
+            mark = self._count_execute(mark)        # the checkpoint holds the compute so far
             t_now = yield Msg("clock")
             yield Msg("checkpoint", (checkpoint(self, ops[i:], done, corrections, t_now),))
-        ledger.wall["execute"] += time.perf_counter() - w_start - (ledger.wall["plan"] - plan0)
+        self._count_execute(mark)
         # the verdict: what a scan finds in every slot, not what the belief expects
         self.slots = yield from check_slots(ctx, self.layout, summary(self).assignment)
         counts = {s: sum(v.state == s for v in self.slots) for s in STATES}
@@ -210,6 +211,15 @@ class Assembly:
         result = summary(self)
         yield Msg("emit", ("result", result.to_doc()))
         return result
+
+    def _count_execute(self, mark: tuple[float, float]) -> tuple[float, float]:
+        """Add the wall time since ``mark`` (``perf_counter()`` and the plan stage's seconds
+        then), less what planning took meanwhile, to the execute stage; returns the new mark.
+        A checkpoint so holds the run's compute up to it, to which a resumed run adds its own."""
+        wall = self.ctx.ledger.wall
+        now = time.perf_counter()
+        wall["execute"] += now - mark[0] - (wall["plan"] - mark[1])
+        return now, wall["plan"]
 
     def _replan(self, op: Operation, outcome: str, done: int, off: float, astray: bool):
         """Plan what remains from the present belief after ``op``; returns its operations."""

@@ -11,14 +11,13 @@ machine::
                      '---- Ctrl-C / SIGTERM ---> ABORTED
 
 On every exit, whatever the state, the tip is lifted and the DAC parked
-(``instrument.park()``), the subscribers are told how the run ended and closed.
+(``instrument.park()``), the subscribers are told how the run ended and closed. A
+further Ctrl-C or SIGTERM during that clean-up waits for its end (:mod:`.stopping`).
 """
 
 from __future__ import annotations
 
 import enum
-import signal
-import threading
 import time
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
@@ -27,6 +26,7 @@ from typing import Any
 from nanoasm.instrument import Instrument
 
 from .documents import CHECKPOINT, EVENT, STOP, Document, EventDoc, StopDoc
+from .stopping import StopSignals
 
 #: Commands a procedure may yield, and what each returns.
 COMMANDS = {
@@ -129,11 +129,13 @@ class RunEngine:
         """Run ``procedure`` to its end; returns its return value.
 
         Exceptions from the procedure or the instrument propagate after the clean-up;
-        Ctrl-C arrives as KeyboardInterrupt, SIGTERM as :class:`Terminated`.
+        Ctrl-C arrives as KeyboardInterrupt, SIGTERM as :class:`Terminated`, and another
+        during the clean-up is held until it ends (raised then if the run had completed).
         """
         if self.state is not RunState.IDLE:
             raise RuntimeError(f"a run engine runs once; this one is {self.state.value}")
-        previous = self._install_sigterm()
+        signals = StopSignals(Terminated)
+        signals.install()
         self.state = RunState.RUNNING
         t0 = time.perf_counter()
         try:
@@ -149,16 +151,23 @@ class RunEngine:
                 self.messages += 1
                 reply = self._dispatch(msg)
         except (KeyboardInterrupt, Terminated) as exc:
+            signals.stopping = True             # first: a further signal is held from here on
             self.state = RunState.ABORTED
             self.reason = "interrupted (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else "terminated (SIGTERM)"
             raise
         except BaseException as exc:
+            signals.stopping = True
             self.state, self.reason = RunState.FAILED, f"{type(exc).__name__}: {exc}"
             raise
         finally:
+            signals.stopping = True
             self.wall_time = time.perf_counter() - t0
-            self._clean_up(procedure)
-            self._restore_sigterm(previous)
+            try:
+                self._clean_up(procedure)
+            finally:
+                signals.restore()
+            if self.state is RunState.DONE:
+                signals.raise_held()
 
     def _clean_up(self, procedure: Generator) -> None:
         """Park the instrument and close everything, whatever happened."""
@@ -175,18 +184,3 @@ class RunEngine:
                         close = getattr(fn, "close", None)
                         if callable(close):
                             close()
-
-    @staticmethod
-    def _install_sigterm():
-        if threading.current_thread() is not threading.main_thread():
-            return None
-
-        def handler(signum, frame):
-            raise Terminated()
-
-        return signal.signal(signal.SIGTERM, handler)
-
-    @staticmethod
-    def _restore_sigterm(previous) -> None:
-        if previous is not None and threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGTERM, previous)

@@ -39,6 +39,8 @@ from nanoasm.param import ParamError, param, validate
 from nanoasm.schema import Table, check_format
 from nanoasm.world.param_spec import from_table
 
+from .strategy import ExecOptions
+
 FORMAT = "nanoasm.instrument/1"
 
 #: ``[scanner]`` keys an instrument file must state (the rest keep their defaults).
@@ -192,6 +194,10 @@ def instrument_from_dict(data: dict, source: str | None = None) -> InstrumentFil
     """Validate a parsed instrument document."""
     check_format(data, source, FORMAT)
     t = Table(data, source)
+    if "timing" in t:       # a scene's table: refused outright, not as a likely typo of "imaging"
+        t.fail("timing", "not an instrument file table: [timing] is the simulated instrument's, in a scene; "
+                         f"a run scans at [imaging]'s speeds and pushes at {ExecOptions().push_speed:g} nm/s "
+                         "(ExecOptions.push_speed)")
     t.check_keys(required=("format", "scanner", "daq", "imaging"), optional=("name",))
     name = t.string("name", "")
     st = t.table("scanner")

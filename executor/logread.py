@@ -1,27 +1,26 @@
-"""Reading run logs back (complete, or cut short by a killed process).
+"""Reading run logs back (complete, cut short by a killed process, or damaged).
 
-:func:`read_log` reads an MCAP run log record by record and stops at the first byte that
-does not make a whole record (a truncated or damaged file), keeping everything before
-it and flagging ``complete=False``. Protobuf messages (Foxglove schemas) are decoded with
-mcap-protobuf-support, JSON messages into Python values;
-:meth:`RunLogContents.documents` reads the engine's documents back typed
+:func:`read_log` reads an MCAP run log record by record (:mod:`.log_records`): it keeps
+everything up to where the file was cut (a killed run), and reads on past a damaged part
+(a chunk whose data do not match its stated size or CRC, a garbled length), which it
+skips and tells in :attr:`RunLogContents.damage`: the bytes, and the instrument times
+between which what was logged is lost. Either way ``complete`` is False. Protobuf
+messages (Foxglove schemas) are decoded with mcap-protobuf-support, JSON messages into
+Python values; :meth:`RunLogContents.documents` reads the engine's documents back typed
 (:mod:`nanoasm.executor.documents`). :func:`last_checkpoint` gives the last procedure
 state a run logged, for resuming it.
 
-Chunks are decompressed here, not by the mcap library: a chunk's record states its
-uncompressed size, which is checked against :data:`MAX_CHUNK_BYTES` (and the log's running
-total against :data:`MAX_LOG_BYTES`) before anything is decompressed, and decompression
-stops at the stated size. A chunk beyond a limit is an InputError naming the file (a zstd
-bomb of a few hundred kB claiming 6 GB ends in one line, not in 6 GB of memory); a chunk
-whose data do not match its stated size or CRC is damage, and ends the readable prefix.
+A chunk's record states its uncompressed size, which is checked against
+:data:`MAX_CHUNK_BYTES` (and the log's running total against :data:`MAX_LOG_BYTES`)
+before anything is decompressed, and decompression stops at the stated size. A chunk
+beyond a limit is an InputError naming the file (a zstd bomb of a few hundred kB
+claiming 6 GB ends in one line, not in 6 GB of memory).
 """
 
 from __future__ import annotations
 
 import json
 import os
-import zlib
-from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,8 +28,8 @@ from typing import Any
 from nanoasm.errors import InputError
 
 from .documents import CHANNELS, CHECKPOINT, CheckpointDoc, DocumentError, document_from_dict
+from .log_records import MAGIC, Damage, RecordReader
 
-MAGIC = b"\x89MCAP0\r\n"
 #: Largest uncompressed size of one chunk read (128 MiB). The run log's writer closes a
 #: chunk at about 1 MiB, or holds one larger message in it: the largest is a full scan's
 #: ``/scan`` grid, 64 MiB for 4096 x 4096 pixels (float32), the most an image may have.
@@ -38,8 +37,6 @@ MAX_CHUNK_BYTES = 128 * 1024 * 1024
 #: Largest uncompressed size of all chunks of one log together (1 GiB): about a
 #: thousand times a bundled example's dry-run log, and a few seconds of decompression.
 MAX_LOG_BYTES = 1024 * 1024 * 1024
-#: Read from a decompressor at a time (bytes), so that what is held is what came out.
-_PIECE = 1024 * 1024
 
 
 @dataclass(frozen=True)
@@ -62,10 +59,13 @@ class RunLogContents:
     channels: dict[str, str] = field(default_factory=dict)        # topic -> schema name
     attachments: dict[str, bytes] = field(default_factory=dict)   # name -> data (the last of a name)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
-    complete: bool = False
-    problem: str | None = None          # why reading stopped early (None when complete)
+    complete: bool = False              # the whole file read, footer and all, nothing damaged
+    problem: str | None = None          # what is not whole: damage, the cut (None when complete)
     size: int = 0                       # bytes in the file
-    read_bytes: int = 0                 # bytes up to the last whole record
+    read_bytes: int = 0                 # bytes up to the last whole record read (the closing magic)
+    damage: list[Damage] = field(default_factory=list)    # parts skipped, in file order
+    skipped: list[str] = field(default_factory=list)      # messages that did not decode, and why
+    cut: str | None = None              # why the reading ended before the footer (None: it did not)
 
     def topic(self, name: str) -> list[LogMessage]:
         """The messages of a topic, in log order."""
@@ -107,128 +107,14 @@ class RunLogContents:
         except ValueError:
             return None
 
+    def warnings(self) -> list[str]:
+        """One line per damaged part skipped, naming the file: its bytes and what is lost."""
+        return [f"{self.path}: {d.line()}" for d in self.damage]
+
     @property
     def end_time(self) -> float | None:
         """Latest instrument time of any message (s)."""
         return max((m.t for m in self.messages), default=None)
-
-
-class _Counting:
-    """A binary file wrapper counting the bytes read (where reading stopped)."""
-
-    def __init__(self, fh):
-        self.fh = fh
-        self.count = 0
-
-    def read(self, n: int = -1) -> bytes:
-        data = self.fh.read(n)
-        self.count += len(data)
-        return data
-
-    def readinto(self, b) -> int:  # pragma: no cover - StreamReader uses read()
-        n = self.fh.readinto(b)
-        self.count += n or 0
-        return n
-
-
-def _records(fh: _Counting, size: int, src: str) -> Iterator[Any]:
-    """The log's records in order, the records of each chunk in place of the chunk."""
-    from mcap.records import Chunk
-    from mcap.stream_reader import StreamReader
-
-    # a record cannot be longer than the file: a garbled length stops the reading
-    records = StreamReader(fh, validate_crcs=True, record_size_limit=max(size, 1), emit_chunks=True).records
-    total = 0
-    while True:
-        start = fh.count
-        try:
-            rec = next(records)
-        except StopIteration:
-            return
-        if not isinstance(rec, Chunk):
-            yield rec
-            continue
-        claim = rec.uncompressed_size
-        if claim > MAX_CHUNK_BYTES:
-            raise InputError(src, None, f"the chunk at byte {start} claims {claim} bytes uncompressed; at most "
-                                        f"{MAX_CHUNK_BYTES} (MAX_CHUNK_BYTES, 128 MiB) are read")
-        total += claim
-        if total > MAX_LOG_BYTES:
-            raise InputError(src, None, f"the chunks up to byte {fh.count} hold {total} bytes uncompressed; at "
-                                        f"most {MAX_LOG_BYTES} (MAX_LOG_BYTES, 1 GiB) are read")
-        data = _decompress(rec)
-        if rec.uncompressed_crc != 0 and zlib.crc32(data) != rec.uncompressed_crc:
-            raise ValueError(f"crc validation failed in Chunk, expected: {rec.uncompressed_crc}, "
-                             f"calculated: {zlib.crc32(data)}")
-        yield from _chunk_records(data)
-
-
-def _chunk_records(data: bytes) -> Iterator[Any]:
-    """The records of a decompressed chunk. Only schemas, channels and messages may be
-    in a chunk (the MCAP specification): anything else is damage, which also stops a
-    chunk of zeros (opcode 0, reserved) from being read as millions of empty records."""
-    import io
-
-    from mcap.data_stream import ReadDataStream
-    from mcap.opcode import Opcode
-    from mcap.records import Channel, Message, Schema
-
-    stream = ReadDataStream(io.BytesIO(data))
-    end = len(data)
-    while stream.count < end:
-        opcode = stream.read1()
-        length = stream.read8()
-        start = stream.count
-        if length > end - start:
-            raise ValueError(f"a record in a chunk runs {length - (end - start)} byte(s) past the chunk's end")
-        if opcode == Opcode.MESSAGE:
-            rec = Message.read(stream, length)
-        elif opcode == Opcode.CHANNEL:
-            rec = Channel.read(stream)
-        elif opcode == Opcode.SCHEMA:
-            rec = Schema.read(stream)
-        else:
-            raise ValueError(f"a record of opcode 0x{opcode:02x} in a chunk (only schemas, channels and "
-                             "messages may be there)")
-        padding = length - (stream.count - start)
-        if padding < 0:
-            raise ValueError("a record in a chunk is longer than its stated length")
-        stream.read(padding)
-        yield rec
-
-
-def _decompress(chunk) -> bytes:
-    """A chunk's data decompressed, never beyond the size its record states (ValueError
-    when they do not come to exactly that size)."""
-    expected = chunk.uncompressed_size
-    out = bytearray()
-    if chunk.compression == "":
-        out += chunk.data
-    elif chunk.compression == "zstd":
-        import zstandard
-
-        with zstandard.ZstdDecompressor().stream_reader(chunk.data, read_across_frames=True) as reader:
-            while len(out) <= expected:
-                piece = reader.read(min(_PIECE, expected + 1 - len(out)))
-                if not piece:
-                    break
-                out += piece
-    elif chunk.compression == "lz4":
-        import lz4.frame
-
-        dec = lz4.frame.LZ4FrameDecompressor()
-        piece = dec.decompress(chunk.data, max_length=min(_PIECE, expected + 1))
-        while piece:
-            out += piece
-            if len(out) > expected or dec.eof:
-                break
-            piece = dec.decompress(b"", max_length=min(_PIECE, expected + 1 - len(out)))
-    else:
-        raise ValueError(f"unknown chunk compression {chunk.compression[:20]!r}")
-    if len(out) != expected:
-        more = "more" if len(out) > expected else f"{len(out)}"
-        raise ValueError(f"a chunk decompresses to {more} bytes, not the {expected} it states")
-    return bytes(out)
 
 
 def read_log(path: str | os.PathLike, *, topics: set[str] | None = None) -> RunLogContents:
@@ -236,11 +122,9 @@ def read_log(path: str | os.PathLike, *, topics: set[str] | None = None) -> RunL
 
     Raises :class:`InputError` when the file is missing, empty or not an MCAP file at all,
     or holds a chunk beyond :data:`MAX_CHUNK_BYTES` (or chunks beyond :data:`MAX_LOG_BYTES`);
-    a file cut short anywhere after its first bytes is read up to the cut.
+    a file cut short anywhere after its first bytes is read up to the cut, and a damaged
+    part is skipped (:attr:`RunLogContents.damage`) and the reading goes on after it.
     """
-    from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
-    from mcap_protobuf.decoder import DecoderFactory
-
     src = str(path)
     p = Path(path)
     if not p.exists():
@@ -260,54 +144,86 @@ def read_log(path: str | os.PathLike, *, topics: set[str] | None = None) -> RunL
         if not MAGIC.startswith(head):
             raise InputError(src, None, "not an MCAP run log (bad magic bytes)")
         if len(head) < len(MAGIC):
-            out.problem = "the log ends inside its first bytes"
+            out.problem = out.cut = "the log ends inside its first bytes"
             out.read_bytes = len(head)
             return out
-        fh.seek(0)
-        counting = _Counting(fh)
-        schemas: dict[int, Any] = {}
-        channels: dict[int, Any] = {}
-        decoders: dict[int, Any] = {}
-        protobuf = DecoderFactory()
-        try:
-            for rec in _records(counting, out.size, src):
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = rec
-                    schema = schemas.get(rec.schema_id)
-                    out.channels[rec.topic] = schema.name if schema is not None else ""
-                elif isinstance(rec, Message):
-                    ch = channels.get(rec.channel_id)
-                    if ch is None:
-                        raise ValueError(f"message on unknown channel {rec.channel_id}")
-                    if topics is not None and ch.topic not in topics:
-                        continue
-                    schema = schemas.get(ch.schema_id)
-                    out.messages.append(LogMessage(ch.topic, schema.name if schema else "", rec.log_time / 1e9,
-                                                   _decode(ch, schema, rec.data, decoders, protobuf)))
-                elif isinstance(rec, Attachment):
-                    out.attachments[rec.name] = bytes(rec.data)
-                elif isinstance(rec, Metadata):
-                    out.metadata[rec.name] = dict(rec.metadata)
-                elif isinstance(rec, Footer):
-                    out.complete = True
-                out.read_bytes = counting.count
-            out.read_bytes = counting.count      # the closing magic bytes
-        except InputError:
-            raise                                # a limit passed: refused, not read in part
-        except Exception as exc:  # noqa: BLE001 - any bad byte ends the readable prefix
-            out.complete = False
-            out.problem = _problem(exc, counting.count, out.size)
-    if out.complete and out.read_bytes < out.size:
-        out.complete, out.problem = False, f"{out.size - out.read_bytes} stray byte(s) after the footer"
+        reader = RecordReader(fh, out.size, src, max_chunk=MAX_CHUNK_BYTES, max_total=MAX_LOG_BYTES)
+        _gather(out, reader, topics)
+    out.read_bytes = reader.read_to if reader.footer_end is None else reader.footer_end + len(MAGIC)
+    _finish(out, reader.cut, reader.mismatch)
     return out
 
 
-def _problem(exc: Exception, at: int, size: int) -> str:
-    if at >= size:
-        return f"the log ends mid-record at byte {size}"
-    return f"unreadable from byte {at} of {size}: {type(exc).__name__}: {exc}"[:300]
+def _gather(out: RunLogContents, reader: RecordReader, topics: set[str] | None) -> None:
+    """The reader's records into ``out``; each damaged part stamped with the times of
+    the messages either side of it."""
+    from mcap.records import Attachment, Channel, Footer, Message, Metadata, Schema
+    from mcap_protobuf.decoder import DecoderFactory
+
+    schemas: dict[int, Any] = {}
+    channels: dict[int, Any] = {}
+    decoders: dict[int, Any] = {}
+    protobuf = DecoderFactory()
+    last_t, waiting = None, []        # the latest message's time; damage awaiting the next one's
+    for rec in reader.records():
+        if isinstance(rec, Damage):
+            rec.after = last_t
+            out.damage.append(rec)
+            waiting.append(rec)
+        elif isinstance(rec, Schema):
+            schemas[rec.id] = rec
+        elif isinstance(rec, Channel):
+            channels[rec.id] = rec
+            schema = schemas.get(rec.schema_id)
+            out.channels[rec.topic] = schema.name if schema is not None else ""
+        elif isinstance(rec, Message):
+            last_t = rec.log_time / 1e9
+            for d in waiting:
+                d.before = last_t
+            waiting = []
+            _message(out, rec, channels, schemas, topics, decoders, protobuf)
+        elif isinstance(rec, Attachment):
+            out.attachments[rec.name] = bytes(rec.data)
+        elif isinstance(rec, Metadata):
+            out.metadata[rec.name] = dict(rec.metadata)
+        elif isinstance(rec, Footer):
+            out.complete = True
+
+
+def _message(out: RunLogContents, rec, channels: dict, schemas: dict, topics: set[str] | None,
+             decoders: dict, protobuf) -> None:
+    """A message kept, decoded, if its topic is asked for; one that does not decode (or
+    names no channel) is skipped and told in :attr:`RunLogContents.skipped`."""
+    ch = channels.get(rec.channel_id)
+    t = rec.log_time / 1e9
+    if ch is None:
+        out.skipped.append(f"a message at t = {t:.3f} s on unknown channel {rec.channel_id}")
+        return
+    if topics is not None and ch.topic not in topics:
+        return
+    schema = schemas.get(ch.schema_id)
+    try:
+        data = _decode(ch, schema, rec.data, decoders, protobuf)
+    except Exception as exc:  # noqa: BLE001 - one message's bytes, not the log's
+        out.skipped.append(f"{ch.topic} at t = {t:.3f} s: {type(exc).__name__}: {exc}"[:200])
+        return
+    out.messages.append(LogMessage(ch.topic, schema.name if schema else "", t, data))
+
+
+def _finish(out: RunLogContents, cut: str | None, mismatch: str | None) -> None:
+    """``complete`` only for a whole, undamaged file; ``problem`` says what is not."""
+    parts = [f"{len(out.damage)} damaged part(s) skipped, the first: {out.damage[0].line()}"] if out.damage else []
+    if mismatch is not None:
+        parts.append(mismatch)
+    if out.skipped:
+        parts.append(f"{len(out.skipped)} message(s) that do not decode skipped, the first: {out.skipped[0]}")
+    if out.complete and out.read_bytes < out.size:
+        parts.append(f"{out.size - out.read_bytes} stray byte(s) after the footer")
+    if cut is not None:
+        parts.append(cut)
+    out.cut = cut
+    out.complete = out.complete and not parts
+    out.problem = "; ".join(parts) or None
 
 
 def _decode(channel, schema, data: bytes, decoders: dict, protobuf) -> Any:

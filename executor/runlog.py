@@ -258,7 +258,9 @@ class RunLog:
             return
         d = as_dict(doc)
         t = d.get("t")
-        t = t if isinstance(t, (int, float)) else None
+        self._record(topic, d, t if isinstance(t, (int, float)) else None)
+
+    def _record(self, topic: str, d: dict, t: float | None) -> None:
         handler = self._handlers.get(topic)
         if handler is not None:
             handler(d, t)
@@ -266,6 +268,15 @@ class RunLog:
             self._log(CHANNELS[topic], _rounded(d) if topic in _ROUNDED else d, t)
         if topic in _FLUSH_AFTER:
             self.flush()
+
+    def carry(self, inherited) -> None:
+        """A resumed run's log: what it carries over from the stopped run's, at their times
+        (:class:`~nanoasm.executor.resume.Inherited`), so that a resume needs it alone."""
+        if inherited.full_scan is not None:
+            self.attach(FULL_SCAN_ATTACHMENT, inherited.full_scan, media_type="application/x-npz")
+        for topic, (t, doc) in ((ENVIRONMENT, inherited.environment), (PLAN, inherited.plan),
+                                (CHECKPOINT, inherited.checkpoint)):
+            self._record(topic, doc, t)
 
     def _on_event(self, doc: dict, t: float | None) -> None:
         self._log("/events", log_line(self._stamp(t), str(doc.get("level", "info")), str(doc.get("text", ""))), t)

@@ -18,6 +18,7 @@ import enum
 from dataclasses import dataclass
 
 from nanoasm.param import param, validate
+from nanoasm.world.limits import MIN_PUSH_SPEED
 
 
 class Strategy(str, enum.Enum):
@@ -161,7 +162,7 @@ class ExecOptions:
                                 positive=True)
     lost_radius: float = param(1500.0, "nm", "half-size of the search for a lost object", positive=True)
     push_speed: float | None = param(200.0, "nm/s", "tip speed while pushing (None: the scanner's limit)",
-                                     optional=True, positive=True)
+                                     optional=True, positive=True, lo=MIN_PUSH_SPEED)
     chunk: int = param(4096, "-", "DAC samples per streamed chunk", lo=16)
     force_limit: float = param(300.0, "nN", "lateral force beyond which a push is stopped as stuck",
                                positive=True)

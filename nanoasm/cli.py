@@ -362,8 +362,21 @@ def plan_cmd(
               f"{sum(stats.particle_turns) / len(stats.particle_turns):.2f} turns per object")
     if stats.rod_pushes:
         print(f"  rods: {sum(stats.rod_pushes) / len(stats.rod_pushes):.1f} pushes per rod")
-    for u in plan.unfilled:
+    shown, more = _first(plan.unfilled)
+    for u in shown:
         print(f"  unfilled {u.target}: {u.reason}")
+    if more:
+        print(f"  … and {more} more unfilled (see {output})")
+
+
+#: Slots a summary lists one by one (unfilled, missed) before it only counts the rest.
+LISTED = 10
+
+
+def _first(items) -> tuple[list, int]:
+    """The first ``LISTED`` of ``items`` and how many more there are."""
+    items = list(items)
+    return items[:LISTED], max(len(items) - LISTED, 0)
 
 
 def _with_progress(label: str, work):
@@ -550,9 +563,11 @@ def run_cmd(
           f"({states['missed']} missed, {states['unfilled']} unfilled), "
           f"{rep.counts.pushes} push(es), {rep.counts.failed_pushes} failed; "
           f"{rep.instrument_time.total / 60:.1f} min")
-    for v in rep.slots:
-        if v.state != "filled":
-            print(f"  {v.state} {v.target}" + ("" if v.error is None else f": {v.error:.1f} nm off"))
+    shown, more = _first(v for v in rep.slots if v.state != "filled")
+    for v in shown:
+        print(f"  {v.state} {v.target}" + ("" if v.error is None else f": {v.error:.1f} nm off"))
+    if more:
+        print(f"  … and {more} more not filled (the report lists every slot)")
 
 
 def _print_summary(layout, outcome) -> None:
@@ -567,8 +582,12 @@ def _print_summary(layout, outcome) -> None:
     mine = outcome.verdict_filled
     table = RichTable(title=f"dry-run of {layout.name or 'layout'}: {len(mine)} of {n} slot(s) filled "
                             f"(the run's check scans)", show_header=False)
-    table.add_row("simulated truth", f"{len(outcome.truly_filled)} of {n} filled; RMS error of the assigned "
-                                     f"slots filled {outcome.rms_error:.1f} nm")
+    error = (f"RMS error of the assigned slots filled {outcome.rms_error:.1f} nm" if outcome.filled
+             else "no assigned slot filled: no error to measure")
+    table.add_row("simulated truth", f"{len(outcome.truly_filled)} of {n} filled; {error}")
+    found = outcome.summary.env
+    kinds = ", ".join(f"{sum(o.kind == k for o in found.objects)} {k}(s)" for k in ("particle", "rod", "wire"))
+    table.add_row("identified", f"{kinds}, {len(found.obstacles)} obstacle(s) in the full scan")
     if outcome.disagreements:
         table.add_row("[bold red]warning[/]", "the run's verdict differs from the truth on "
                       + ", ".join(outcome.disagreements))
@@ -579,12 +598,13 @@ def _print_summary(layout, outcome) -> None:
     w = rep.wall_time
     table.add_row("wall time", f"{w.total:.1f} s (identify {w.identify:.1f}, plan {w.plan:.1f}, execute {w.execute:.1f})")
     reasons = {u.target: u.reason for u in rep.unfilled}
-    for v in rep.slots:
-        if v.state == "filled":
-            continue
-        found = "nothing found there" if v.error is None else f"{v.error:.1f} nm off"
-        why = reasons.get(v.target, f"{v.object}: {found}" if v.object else found)
+    shown, more = _first(v for v in rep.slots if v.state != "filled")
+    for v in shown:
+        seen = "nothing found there" if v.error is None else f"{v.error:.1f} nm off"
+        why = reasons.get(v.target, f"{v.object}: {seen}" if v.object else seen)
         table.add_row(f"{v.state} {v.target}", why)
+    if more:
+        table.add_row("…", f"and {more} more not filled (the report lists every slot)")
     Console().print(table)
 
 
@@ -678,12 +698,14 @@ def review_cmd(
                                                       "before/after scene, push paths, drift.")] = None,
 ) -> None:
     """Summarise a run log: slots filled, errors, pushes, failures, instrument time, drift."""
+    from nanoasm.harness import warn
     from nanoasm.review import plot_review, print_review, review
 
     if plot is not None and plot.suffix.lower() not in (".png", ".svg", ".pdf"):
         raise InputError(str(plot), None, "plot must end in .png, .svg or .pdf")
     _outputs_apart([("--plot", plot)], [("LOG", log_file)])
     rev = review(log_file)
+    warn(f"{log_file}: {line}" for line in rev.damage)
     print_review(rev)
     if plot is not None:
         plot_review(rev, plot)
@@ -706,23 +728,37 @@ def _is_terminated(exc: BaseException) -> bool:
     return isinstance(exc, _Terminated) or (engine is not None and isinstance(exc, engine.Terminated))
 
 
-def main(argv: list[str] | None = None) -> int:
+def _ignore_further_stops() -> None:
+    """Once a command ends on Ctrl-C or SIGTERM, another one is ignored: it would cut
+    the line that says so, or end the process with a traceback and exit -2."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
+def main(argv: list[str] | None = None, *, restore_signals: bool = True) -> int:
     """Run the CLI; returns (and, as a script, exits with) the exit code.
 
     SIGTERM ends the command as Ctrl-C does (a run stopped, its log closed, no output
-    half-written), with the line ``nanoasm: terminated`` and exit 143 (128 + SIGTERM)."""
+    half-written), with the line ``nanoasm: terminated`` and exit 143 (128 + SIGTERM).
+    The handlers of SIGINT and SIGTERM are as before on return, unless not
+    ``restore_signals`` (the script, whose process ends then: a further Ctrl-C after an
+    interrupted command stays ignored until it has)."""
     on_main_thread = threading.current_thread() is threading.main_thread()
+    previous_int = signal.getsignal(signal.SIGINT) if on_main_thread else None
     previous = signal.signal(signal.SIGTERM, _raise_terminated) if on_main_thread else None
     try:
         return _main(argv)
     except BaseException as exc:
         if not _is_terminated(exc):
             raise
+        _ignore_further_stops()
         print("nanoasm: terminated", file=sys.stderr)
         return 143
     finally:
-        if on_main_thread:
+        if on_main_thread and restore_signals:
             signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+            signal.signal(signal.SIGINT, previous_int if previous_int is not None else signal.SIG_DFL)
 
 
 def _main(argv: list[str] | None) -> int:
@@ -731,6 +767,7 @@ def _main(argv: list[str] | None) -> int:
     try:
         rv = command.main(args=args, prog_name="nanoasm", standalone_mode=False)
         if rv == 130:           # typer turns Ctrl-C into this return value
+            _ignore_further_stops()
             print("nanoasm: interrupted", file=sys.stderr)
             return 130
     except InputError as exc:
@@ -750,6 +787,7 @@ def _main(argv: list[str] | None) -> int:
     except typer.Exit as exc:
         return exc.exit_code
     except (typer.Abort, KeyboardInterrupt):
+        _ignore_further_stops()
         print("nanoasm: interrupted", file=sys.stderr)
         return 130
     except cx.ClickException as exc:
@@ -765,7 +803,7 @@ def _main(argv: list[str] | None) -> int:
 
 
 def script() -> None:
-    sys.exit(main())
+    sys.exit(main(restore_signals=False))
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ from nanoasm.executor.resume import resume_point, resumed_log_path
 from nanoasm.executor.runlog import RunLog, to_json
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.executor.summary import RunSummary
-from nanoasm.harness import LogTo, plain, report_of, run_logs
+from nanoasm.harness import LogTo, check_fits, plain, report_of, run_logs, warn
 from nanoasm.planner import PlanOptions
 from nanoasm.planner.assign import in_slot
 from nanoasm.simkeep import SimKeeper, read_sim_state, restore_sim, sim_state_path
@@ -242,6 +242,12 @@ def truth_slots(layout: Layout, final) -> tuple[str, ...]:
     return tuple(sorted(targets[i].id for i, j in zip(rows, cols) if ok[i, j]))
 
 
+def exec_options(scene: Scene, strategy: str = "full") -> ExecOptions:
+    """The executor's options in a dry-run of ``scene``: it pushes at the scene's
+    ``[timing] push_speed`` (the simulated instrument's)."""
+    return ExecOptions(strategy=strategy, push_speed=scene.params.timing.push_speed)
+
+
 def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
             options: ExecOptions | None = None, plan_options: PlanOptions | None = None,
             subscribers: list[Subscriber] | None = None, scene_name: str | None = None,
@@ -251,24 +257,30 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
 
     ``keep_sim``: keep the simulated world at every checkpoint in this file (for
     resuming; see :mod:`nanoasm.simkeep`). ``resume``: ``(checkpoint state, kept world)``
-    of a stopped dry-run to go on with instead of starting afresh. Run logs among the
-    ``subscribers`` get the scene and the truth from this harness.
+    of a stopped dry-run to go on with instead of starting afresh; the report's wall time
+    then counts the stopped run's up to the checkpoint (its compute by stage) too. Run
+    logs among the ``subscribers`` get the scene and the truth from this harness.
     """
     seed = scene.seed if seed is None else seed
     seed = 0 if seed is None else seed
     t_wall = time.perf_counter()
+    wall_before = 0.0               # the stopped run's compute up to its checkpoint, s
     if resume is not None:          # the world as the stopped run left it
         state, kept = resume
         sim, start_clock, initial_sample = kept["sim"], kept["start_clock"], kept["initial"]
+        wall_before = sum(float(v) for v in state["wall"].values())
     else:
         sim = SimulatedAFM(scene, seed=seed)
         start_clock = sim.clock()
         initial_sample = sim.truth()
-    assembly = Assembly(layout, options, plan_options)
+    assembly = Assembly(layout, options or exec_options(scene), plan_options)
     drift_log, push_log = _DriftLog(), _PushLog(sim)
     subscribers = [*(subscribers or ()), drift_log, push_log]
     if keep_sim is not None:
-        subscribers.append(SimKeeper(keep_sim, sim, start_clock, initial_sample))
+        keeper = SimKeeper(keep_sim, sim, start_clock, initial_sample)
+        subscribers.append(keeper)
+        if resume is not None:      # the resumed log starts at the checkpoint it goes on from: so does its world
+            keeper.keep(float(resume[0]["t"]))
     engine = RunEngine(sim, subscribers)
     # run logs get the scene before and the truth after the run, from this harness alone
     logs = [s for s in subscribers if isinstance(s, RunLog)]
@@ -283,7 +295,8 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     ids = match_ids(summary.env.objects, initial)
     for log in logs:
         _log_truth(log, initial, final, ids, sim.clock())
-    report = report_of(summary, layout, total, time.perf_counter() - t_wall, layout_name=layout_name,
+    wall = wall_before + time.perf_counter() - t_wall
+    report = report_of(summary, layout, total, wall, layout_name=layout_name,
                        scene_name=scene_name, seed=seed, objects=(initial, final), ids=ids)
     filled, errors = filled_slots(layout, report.assignment, {b.id: b for b in final})
     return Outcome(report, summary, filled, errors, drift_log.against(sim, summary.epoch),
@@ -300,10 +313,11 @@ def dry_run_files(scene_file: Path, layout_file: Path, *, seed: int | None = Non
     Returns the outcome and the layout."""
     scene = load_scene(scene_file)
     layout = load_layout(layout_file)
+    check_fits(layout, str(layout_file), scene.params.scanner)
     meta = {"kind": "dry-run", "strategy": strategy, "seed": seed, "scene": str(scene_file),
             "layout": str(layout_file)}
     outcome = _logged(scene, layout, meta, log, report, progress, seed=seed,
-                      options=ExecOptions(strategy=strategy), plan_options=plan_options,
+                      options=exec_options(scene, strategy), plan_options=plan_options,
                       scene_name=str(scene_file), layout_name=str(layout_file),
                       keep_sim=None if log.path is None else sim_state_path(log.path))
     return outcome, layout
@@ -322,21 +336,25 @@ def resume_dry_run(stopped: Path, *, plan_options: PlanOptions | None = None, lo
     meta = point.metadata
     if point.scene is None:
         raise InputError(str(stopped), "scene.json", "the log has no scene attached")
-    kept = restore_sim(sim_state_path(stopped), kept, point.scene, point.state)   # of the log's scene
+    # of the log's scene, and of the checkpoint (unless that was lost: then the world is ahead of it)
+    kept = restore_sim(sim_state_path(stopped), kept, point.scene, None if point.behind else point.state)
+    warn(point.warnings)
     seed = int(meta["seed"]) if meta.get("seed", "None") not in ("None", "") else None
     log = replace(log, path=log.path or resumed_log_path(stopped))
-    outcome = _logged(point.scene, point.layout, {**meta, "resumed_from": str(stopped)}, log, report, progress,
-                      seed=seed, options=ExecOptions(strategy=point.state["strategy"]),
+    given = {k: meta[k] for k in ("kind", "strategy", "seed", "scene", "layout") if k in meta}
+    outcome = _logged(point.scene, point.layout, {**given, "resumed_from": str(stopped)}, log, report, progress,
+                      seed=seed, options=exec_options(point.scene, point.state["strategy"]),
                       plan_options=replace(plan_options or PlanOptions(), seed=seed or 0),
                       scene_name=meta.get("scene"), layout_name=meta.get("layout"),
-                      keep_sim=sim_state_path(log.path), resume=(point.state, kept))
+                      keep_sim=sim_state_path(log.path), resume=(point.state, kept), carry=point.inherited)
     return outcome, point.layout
 
 
 def _logged(scene: Scene, layout: Layout, meta: dict, log: LogTo, report: Path | None,
-            progress: AbstractContextManager | None, **kwargs) -> Outcome:
-    """:func:`dry_run` with its run log, progress subscribers and report file."""
-    with run_logs(log, layout, meta, truth=True) as logs, progress or nullcontext([]) as shown:
+            progress: AbstractContextManager | None, carry=None, **kwargs) -> Outcome:
+    """:func:`dry_run` with its run log (carrying over ``carry``, a resumed run's
+    :class:`~nanoasm.executor.resume.Inherited`), progress subscribers and report file."""
+    with run_logs(log, layout, meta, truth=True, carry=carry) as logs, progress or nullcontext([]) as shown:
         if kwargs.get("keep_sim") is not None:
             # a log written over (--force): the world kept for the old one must not stay beside it
             Path(kwargs["keep_sim"]).unlink(missing_ok=True)

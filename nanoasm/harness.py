@@ -16,6 +16,7 @@ from pathlib import Path
 
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
+from nanoasm.errors import InputError
 from nanoasm.executor.report import InstrumentTime, Report, WallTime
 from nanoasm.executor.runlog import RunLog
 from nanoasm.executor.summary import RunSummary
@@ -33,9 +34,11 @@ class LogTo:
 
 
 @contextmanager
-def run_logs(to: LogTo, layout: Layout, metadata: dict, **options) -> Iterator[list[RunLog]]:
+def run_logs(to: LogTo, layout: Layout, metadata: dict, carry=None, **options) -> Iterator[list[RunLog]]:
     """The run log and live stream as a list of engine subscribers (empty when ``to`` asks
-    for neither); closed on the way out, whatever happens. ``options`` go to the RunLog."""
+    for neither); closed on the way out, whatever happens. ``carry``: a resumed run's
+    :class:`~nanoasm.executor.resume.Inherited`, written first (:meth:`RunLog.carry`);
+    ``options`` go to the RunLog."""
     if to.path is None and not to.live:
         yield []
         return
@@ -46,11 +49,20 @@ def run_logs(to: LogTo, layout: Layout, metadata: dict, **options) -> Iterator[l
     if log.server is not None:
         print(f"live: ws://127.0.0.1:{log.port} (Foxglove: Open connection > Foxglove WebSocket)", file=sys.stderr)
     try:
+        if carry is not None:
+            log.carry(carry)
         yield [log]
     finally:
         log.close()
         if to.path is not None:
             print(f"{to.path}: written", file=sys.stderr)
+
+
+def warn(lines) -> None:
+    """Warnings a harness gives before it runs (a damaged log it resumes), one line each
+    on stderr."""
+    for line in lines:
+        print(f"nanoasm: warning: {line}", file=sys.stderr)
 
 
 def plain(o: Body, at: tuple[float, float] | None = None) -> Body:
@@ -89,3 +101,14 @@ def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall
         slots=tuple(replace(v, object=None if v.object is None else ids.get(v.object, v.object))
                     for v in summary.slots),
     )
+
+
+def check_fits(layout: Layout, source: str | None, config) -> None:
+    """Refuse, before a run starts, a layout whose working area does not fit the XY range
+    of the scanner (``config``, an InstrumentConfig): the run scans it centred in the
+    range. One line naming the layout file (``source``) and ``area``."""
+    (w, h), (xr, yr) = layout.area, config.xy_range
+    side = max(w, h)            # the full scan is the square on the area's longer side
+    if side > xr or side > yr:
+        raise InputError(source, "area", f"a full scan of {side:g} x {side:g} nm does not fit the scanner's XY "
+                                         f"range {xr:g} x {yr:g} nm")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import struct
 from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
@@ -64,10 +65,41 @@ class Review:
     truth_final: list[Body] = field(default_factory=list)
     paths: list[tuple[list, str]] = field(default_factory=list)   # (tip path, verdict)
     notes: list[str] = field(default_factory=list)        # messages skipped, and why
+    damage: list[str] = field(default_factory=list)       # parts of the file skipped, and what is lost
+    cut: str | None = None                                # why the log ends before its footer
 
     @property
     def filled(self) -> int:
         return sum(s.filled for s in self.slots)
+
+
+def _check_started(log) -> None:
+    """Refuse a file whose run never started in it. Every run log begins with the MCAP
+    header of profile ``nanoasm.runlog/1`` and then the ``nanoasm`` metadata record (of
+    that format), both flushed before the run does anything: a file with neither (random
+    bytes after the MCAP magic, junk records, another tool's MCAP) is no run log however
+    much of it reads. A log cut before its metadata record is still one when all of its
+    first record that is there is such a header."""
+    from nanoasm.executor.runlog import FORMAT
+
+    meta = log.metadata.get("nanoasm")
+    if meta is not None and meta.get("format") == FORMAT:
+        return
+    if meta is None and not log.complete and _starts_as_run_log(log.path, FORMAT):
+        return
+    why = ("no 'nanoasm' metadata record" if meta is None
+           else f"its 'nanoasm' metadata record is not of format {FORMAT!r}")
+    raise InputError(log.path, None, f"not a readable nanoasm run log ({why}{'; ' + log.cut if log.cut else ''})")
+
+
+def _starts_as_run_log(path: str, profile: str) -> bool:
+    """Whether the file's first bytes, as far as they go, are the MCAP magic and a header
+    record (opcode 1, any length) of ``profile``."""
+    name = profile.encode("utf-8")
+    expected = [*b"\x89MCAP0\r\n\x01", *[None] * 8, *struct.pack("<I", len(name)), *name]
+    with open(path, "rb") as fh:
+        head = fh.read(len(expected))
+    return all(want is None or got == want for got, want in zip(head, expected))
 
 
 def review(path: str | os.PathLike) -> Review:
@@ -79,9 +111,9 @@ def review(path: str | os.PathLike) -> Review:
     log = read_log(path)
     meta = dict(log.metadata.get("nanoasm", {}))
     kind = "dry-run" if "dry-run" in log.metadata or log.topic(TRUTH) else meta.get("kind", "run")
-    rev = Review(str(path), log.complete, log.problem, kind, meta, log.end_time)
-    if "nanoasm" not in log.metadata and log.complete:
-        raise InputError(str(path), None, "an MCAP file, but not a nanoasm run log (no 'nanoasm' metadata)")
+    rev = Review(str(path), log.complete, log.problem, kind, meta, log.end_time, cut=log.cut,
+                 damage=[d.line() for d in log.damage])
+    _check_started(log)
     layout_doc = log.attachment_json("layout.json")
     if layout_doc is not None:
         try:
@@ -215,7 +247,9 @@ def print_review(rev: Review, console=None) -> None:
     n = len(rev.layout.targets) if rev.layout is not None else 0
     title = f"{rev.kind} of {name}: {rev.filled} of {n} slot(s) filled"
     table = RichTable(title=title, show_header=False)
-    if not rev.complete:
+    for line in rev.damage:
+        table.add_row("[bold red]damaged[/]", line)
+    if rev.cut is not None or (not rev.complete and not rev.damage):
         table.add_row("[bold red]incomplete[/]", _incomplete(rev))
     elif rev.stop is not None and rev.stop.state != "done":
         table.add_row("[bold red]stopped[/]", f"{rev.stop.state}: {rev.stop.reason}")
@@ -258,7 +292,7 @@ def print_review(rev: Review, console=None) -> None:
 
 def _incomplete(rev: Review) -> str:
     end = "its start" if rev.end_time is None else f"t = {rev.end_time:.1f} s"
-    why = f"; {rev.problem}" if rev.problem else ""
+    why = f"; {rev.cut or rev.problem}" if rev.cut or rev.problem else ""
     return f"incomplete: log ends at {end} (after {len(rev.paths)} push(es)){why}"
 
 
@@ -295,7 +329,7 @@ def plot_review(rev: Review, out: str | os.PathLike) -> None:
     drift.set_xlabel("instrument time, min")
     drift.set_ylabel("drift, nm")
     drift.set_title("drift estimate")
-    status = "" if rev.complete else " (incomplete log)"
+    status = "" if rev.complete else " (damaged log)" if rev.damage and rev.cut is None else " (incomplete log)"
     fig.suptitle(f"{os.path.basename(rev.path)}: {rev.filled} slot(s) filled, {rev.pushes} push(es){status}")
     fig.tight_layout()
     buf = io.BytesIO()

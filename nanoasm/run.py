@@ -20,7 +20,7 @@ from nanoasm.executor.engine import RunEngine, Subscriber
 from nanoasm.executor.report import Report
 from nanoasm.executor.resume import ResumePoint, ShiftedClock, clock_shift, resume_point, resumed_log_path
 from nanoasm.executor.strategy import ExecOptions
-from nanoasm.harness import LogTo, report_of, run_logs
+from nanoasm.harness import LogTo, check_fits, report_of, run_logs, warn
 from nanoasm.planner import PlanOptions
 
 
@@ -59,19 +59,22 @@ def run_files(instrument_file: Path, layout_file: Path | None = None, *, strateg
     point = None
     if resume_from is not None:
         point = resume_point(resume_from, "run")
+        warn(point.warnings)
         layout, strategy = point.layout, point.state["strategy"]
         layout_file = Path(point.metadata.get("layout", "layout.json"))
         log = replace(log, path=log.path or resumed_log_path(resume_from))
     else:
         layout = load_layout(layout_file)
     config = load_instrument_config(instrument_file)
+    check_fits(layout, str(layout_file), config.scanner)
     options = ExecOptions(strategy=strategy)
     meta = {"kind": "run", "strategy": strategy, "layout": str(layout_file), "instrument": str(instrument_file)}
     if resume_from is not None:
         meta["resumed_from"] = str(resume_from)
     suffix = instrument_file.suffix.lower()
     attach = {"instrument" + suffix: ("application/" + suffix.lstrip("."), instrument_file.read_bytes())}
-    with (NiDaqInstrument(config) as hardware, run_logs(log, layout, meta, attachments=attach) as logs,
+    carry = None if point is None else point.inherited
+    with (NiDaqInstrument(config) as hardware, run_logs(log, layout, meta, attachments=attach, carry=carry) as logs,
           progress or nullcontext([]) as shown):
         rep = run(layout, hardware, options=options, subscribers=[*shown, *logs], layout_name=str(layout_file),
                   resume=point)

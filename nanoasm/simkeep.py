@@ -54,9 +54,11 @@ class SimKeeper:
         self.path, self.sim, self.start_clock, self.initial = Path(path), sim, start_clock, initial
 
     def __call__(self, topic: str, doc) -> None:
-        if topic != CHECKPOINT:
-            return
-        t = float(as_dict(doc).get("t", self.sim.clock()))
+        if topic == CHECKPOINT:
+            self.keep(float(as_dict(doc).get("t", self.sim.clock())))
+
+    def keep(self, t: float) -> None:
+        """The world now, as the one of the checkpoint at instrument time ``t``."""
         text = json.dumps(sim_document(t, self.sim, self.start_clock, self.initial), allow_nan=False,
                           separators=(",", ":"))
         write_atomic(self.path, text, mode=0o600)     # the run's own: for its owner alone

@@ -67,3 +67,96 @@ def kill_when(proc, ready, timeout: float = 180.0) -> None:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+#: A CLI run that SIGKILLs itself right after it kept its simulated world for the n-th
+#: time (the dry-run harness keeps it after every checkpoint and, when resuming, at the
+#: start): the kill lands at the same point of the run every time.
+_KILLED_AFTER = """
+import os, signal, sys
+from nanoasm import simkeep
+write, kept = simkeep.write_atomic, [0]
+def keep_then_die(*args, **kwargs):
+    write(*args, **kwargs)
+    kept[0] += 1
+    if kept[0] == int(os.environ["NANOASM_TEST_KILL_AFTER"]):
+        os.kill(os.getpid(), signal.SIGKILL)
+simkeep.write_atomic = keep_then_die
+from nanoasm.cli import main
+sys.exit(main(sys.argv[1:]))
+"""
+
+
+def cli_env() -> dict[str, str]:
+    """The environment for a CLI subprocess: this one's, without PYTHONPATH."""
+    import os
+
+    return {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NANOASM_DEBUG")}
+
+
+def killed_after(args: list[str], kept: int, cwd, timeout: float = 180.0) -> None:
+    """Run ``nanoasm ARGS`` in a subprocess SIGKILLed right after the ``kept``-th time it
+    kept its world; fails the test if it ends otherwise."""
+    import signal
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _KILLED_AFTER, *map(str, args)], cwd=cwd, capture_output=True,
+                          text=True, timeout=timeout, env={**cli_env(), "NANOASM_TEST_KILL_AFTER": str(kept)})
+    assert done.returncode == -signal.SIGKILL, f"not killed (exit {done.returncode}): {done.stderr}"
+
+
+def chunk_topics(path) -> list[tuple[int, int, set[str]]]:
+    """Every chunk of an MCAP file: its record's first byte, the byte after it, and the
+    topics of its messages (read with the mcap library, independently of the reader under
+    test)."""
+    from mcap.records import Channel, Chunk, Message
+    from mcap.stream_reader import StreamReader, breakup_chunk
+
+    class Counting:
+        def __init__(self, fh):
+            self.fh, self.count = fh, 0
+
+        def read(self, n=-1):
+            data = self.fh.read(n)
+            self.count += len(data)
+            return data
+
+    out, topics = [], {}
+    with open(path, "rb") as fh:
+        counting = Counting(fh)
+        records = StreamReader(counting, emit_chunks=True).records
+        start = 8
+        try:
+            for rec in records:
+                if isinstance(rec, Chunk):
+                    inner = breakup_chunk(rec)
+                    topics.update({c.id: c.topic for c in inner if isinstance(c, Channel)})
+                    out.append((start, counting.count, {topics[m.channel_id] for m in inner
+                                                        if isinstance(m, Message)}))
+                start = counting.count
+        except Exception:  # noqa: BLE001 - a log cut short ends here
+            pass
+    return out
+
+
+def stop_when(proc, ready, signals, timeout: float = 120.0) -> str:
+    """Send ``signals`` (``(seconds to wait first, signal number)``, ...) to the subprocess
+    ``proc`` as soon as ``ready()`` is true (polled), then wait for its end; returns its
+    stderr. Fails the test if the process ends, or is not ready in ``timeout`` s, first;
+    the process is reaped whatever happens."""
+    import time
+
+    try:
+        deadline = time.monotonic() + timeout
+        while proc.poll() is None and time.monotonic() < deadline and not ready():
+            time.sleep(0.02)
+        assert proc.poll() is None and ready(), f"the process ended before it was ready: {proc.stderr.read()!r}"
+        for wait, signum in signals:
+            time.sleep(wait)
+            proc.send_signal(signum)
+        return proc.communicate(timeout=60)[1]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()

@@ -11,7 +11,7 @@ import time
 from contextlib import contextmanager
 
 import pytest
-from runlogkit import particle_bowtie
+from runlogkit import particle_bowtie, stop_when
 
 from nanoasm.cli import main
 from nanoasm.examples import path as example
@@ -236,18 +236,7 @@ def test_sigterm_stops_a_dry_run_with_exit_143_and_one_line(files):
     proc = subprocess.Popen([sys.executable, "-m", "nanoasm.cli", "dry-run", str(example("bowtie_scene.toml")),
                              str(example("bowtie.toml")), "--seed", "3", "--log", str(log)],
                             cwd=files, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    try:
-        deadline = time.monotonic() + 60.0
-        while not log.exists() and proc.poll() is None and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert log.exists() and proc.poll() is None, "the dry-run ended before its log appeared"
-        time.sleep(0.5)                             # into the run
-        proc.send_signal(signal.SIGTERM)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+    err = stop_when(proc, log.exists, [(0.5, signal.SIGTERM)], 60.0)     # 0.5 s into the run
     assert proc.returncode == 143, err
     assert "Traceback" not in err
     lines = err.strip().splitlines()

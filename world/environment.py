@@ -7,12 +7,17 @@ obstacle polygon. Objects or obstacles cut by the image border carry ``edge = Tr
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass
 
-from nanoasm.bodies import Body, body_from_table, check_unique_ids, polygon_from_table
+from nanoasm.bodies import TOUCH_EPS, Body, body_from_table, check_unique_ids, polygon_from_table
+from nanoasm.errors import InputError
 from nanoasm.fileio import dumps_json, read_document, write_atomic
+from nanoasm.instrument.protocol import MAX_SCANNER_RANGE
 from nanoasm.schema import Point, Table, check_format
+
+from .limits import MAX_HEIGHT
 
 FORMAT = "nanoasm.env/1"
 KINDS = ("particle", "rod", "wire")
@@ -112,4 +117,42 @@ def environment_from_dict(data: dict, source: str | None = None) -> Environment:
 
 
 def load_environment(path: str | os.PathLike) -> Environment:
-    return environment_from_dict(read_document(path), str(path))
+    """An environment file, validated, with everything in it inside its area
+    (:func:`check_inside`)."""
+    env = environment_from_dict(read_document(path), str(path))
+    check_inside(env, str(path))
+    return env
+
+
+def check_inside(env: Environment, source: str | None) -> None:
+    """Refuse an environment a scan could not have given: an area beyond any scanner's
+    travel (``MAX_SCANNER_RANGE``), an object whose centre lies outside the area by more
+    than its radius (half its length for a rod), or by more than its size when it is cut
+    by the image border (``edge``: its centre is fitted to what the image shows of it),
+    an object larger than the area, an obstacle vertex outside the area or an
+    obstacle higher than ``MAX_HEIGHT``. One line naming ``source`` and the key.
+
+    Only for files given to nanoasm: what a run logs may lie beyond a non-square area."""
+    w, h = env.area
+    if max(w, h) > MAX_SCANNER_RANGE:
+        raise InputError(source, "area", f"{w:g} x {h:g} nm is beyond any scanner's travel: at most "
+                                         f"{MAX_SCANNER_RANGE:g} nm a side (MAX_SCANNER_RANGE)")
+    eps = TOUCH_EPS * max(w, h, 1.0)
+    across = math.hypot(w, h)
+    for i, o in enumerate(env.objects, start=1):
+        size, name = (o.length, "length") if o.elongated else (o.diameter, "diameter")
+        if size > across:
+            raise InputError(source, f"objects[{i}].{name}", f"{size:g} nm is more than the area measures "
+                                                             f"across ({across:.6g} nm)")
+        (x, y), r = o.at, (size if o.edge else size / 2) + eps
+        if not (-r <= x <= w + r and -r <= y <= h + r):
+            raise InputError(source, f"objects[{i}].at", f"object {o.id!r} at ({x:g}, {y:g}) lies outside the "
+                                                         f"area {w:g} x {h:g}")
+    for k, ob in enumerate(env.obstacles, start=1):
+        if ob.height > MAX_HEIGHT:
+            raise InputError(source, f"obstacles[{k}].height", f"must be at most {MAX_HEIGHT:g} nm (1 mm), "
+                                                               f"got {ob.height:g}")
+        for j, (x, y) in enumerate(ob.polygon, start=1):
+            if not (-eps <= x <= w + eps and -eps <= y <= h + eps):
+                raise InputError(source, f"obstacles[{k}].polygon[{j}]", f"({x:g}, {y:g}) lies outside the "
+                                                                         f"area {w:g} x {h:g}")

@@ -1,5 +1,7 @@
-"""Limits of a height image: what :func:`~nanoasm.world.readers.read_height_image` reads
-and :func:`~nanoasm.world.identify.identify` identifies.
+"""Limits of what nanoasm reads: a height image (what
+:func:`~nanoasm.world.readers.read_height_image` reads and
+:func:`~nanoasm.world.identify.identify` identifies), and the plausible ranges of a
+scene's drift, noise and push speed and of a layout's working area.
 
 A file or option beyond one of them is refused in one line naming the file (or the
 option) and the limit, before anything large is allocated: a hostile or corrupt file
@@ -29,3 +31,36 @@ WARN_INVALID_SHARE = 0.01
 #: Largest tip radius identification models, nm (100 µm, beyond colloidal probes): a
 #: larger one overflows the tip image.
 MAX_TIP_RADIUS = 1e5
+
+# -- scenes, layouts and environments ----------------------------------------------------
+# ``nanoasm scene check`` and ``layout check`` refuse what a run could not work with, as
+# the run itself would: a value beyond one of these is one line naming the file, the key
+# and the limit, never a crash or a silent "0 of N filled" later.
+
+#: Fastest steady drift a scene may give, nm/s (each component of ``[drift] velocity``):
+#: 36 µm an hour. A settled AFM drifts 0.01-1 nm/s (the seed: several hundred nm an hour);
+#: from about 3 nm/s on, the rows of a 5-minute full scan smear every object beyond
+#: recognition, and faster still the sample leaves the scan. Beyond it, usually a wrong unit.
+MAX_DRIFT_SPEED = 10.0
+#: Largest random walk of the drift, nm/√s (``[drift] random_walk``; the default 0.1 wanders
+#: 6 nm in an hour, this 600 nm).
+MAX_DRIFT_RANDOM_WALK = 10.0
+#: Largest steady change of the drift velocity, nm/s² (``[drift_change] acceleration``,
+#: each component): MAX_DRIFT_SPEED gained in 17 minutes. Thermal settling is some
+#: 1e-4 nm/s² (the scene families draw up to 8e-5).
+MAX_DRIFT_ACCELERATION = 0.01
+#: Largest sudden drift jump, nm (``[drift_change] jump``): 10 µm, a knock that moves the
+#: sample by a good part of the working area.
+MAX_DRIFT_JUMP = 10_000.0
+#: Largest height noise, nm RMS per sample (``[noise] height_rms``). An AFM's noise floor
+#: is 0.05-1 nm; at 10 nm, objects of tens of nm are hardly told from the substrate.
+MAX_HEIGHT_NOISE = 10.0
+#: Slowest push, nm/s (``[timing] push_speed`` of a scene, which a dry-run pushes at, and
+#: ``ExecOptions.push_speed``): a 1 µm push then takes 17 minutes. Slower pushes take
+#: years of instrument time and as many DAC samples.
+MIN_PUSH_SPEED = 1.0
+#: Largest side of a layout's working area, nm (40.96 µm). A run scans the whole working
+#: area first, at 10 nm per pixel (``ExecOptions.pixel_size``), and an image has at most
+#: MAX_PIXELS (4096 a side); it must also fit the scanner's XY range (90 µm by default),
+#: which ``dry-run`` and ``run`` check against the scene's or the instrument file's.
+MAX_LAYOUT_SIDE = 40_960.0

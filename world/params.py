@@ -22,6 +22,14 @@ from nanoasm.instrument import InstrumentConfig
 from nanoasm.param import ParamError, param, validate
 from nanoasm.schema import Table
 
+from .limits import (
+    MAX_DRIFT_ACCELERATION,
+    MAX_DRIFT_JUMP,
+    MAX_DRIFT_RANDOM_WALK,
+    MAX_DRIFT_SPEED,
+    MAX_HEIGHT_NOISE,
+    MIN_PUSH_SPEED,
+)
 from .param_spec import from_table, markdown_rows, to_table
 
 
@@ -149,8 +157,8 @@ class TimingParams:
     mode_switch: float = param(2.0, "s", "switch between tapping (scan) and contact (push) mode, "
                                "approach or retract", source="seed 5.4 describes the switch; 2 s",
                                nonnegative=True)
-    push_speed: float = param(200.0, "nm/s", "tip speed while pushing",
-                              source="seed 4.2.2: >100 particles in half an hour", positive=True)
+    push_speed: float = param(200.0, "nm/s", "tip speed while pushing: a dry-run pushes at it",
+                              source="seed 4.2.2: >100 particles in half an hour", lo=MIN_PUSH_SPEED)
     travel_speed: float = param(2000.0, "nm/s", "tip speed while lifted", source="not in the seed",
                                 positive=True)
 
@@ -164,11 +172,11 @@ class DriftParams:
 
     velocity: tuple[float, float] = param(
         (0.06, -0.04), "nm/s", "steady drift velocity: 260 nm per hour",
-        source="seed 3.6.1: several hundred nm", required=True)
+        source="seed 3.6.1: several hundred nm", required=True, lo=-MAX_DRIFT_SPEED, hi=MAX_DRIFT_SPEED)
     random_walk: float = param(
         0.1, "nm/√s", "random walk of the drift about its steady course (white noise on the "
         "velocity): Var x(t) = q² t per axis, 6 nm rms after 1 h", source="seed 3.6.1",
-        required=True, nonnegative=True)
+        required=True, nonnegative=True, hi=MAX_DRIFT_RANDOM_WALK)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -180,9 +188,10 @@ class DriftChangeParams:
 
     acceleration: tuple[float, float] = param(
         (0.0, 0.0), "nm/s²", "steady change of the drift velocity (thermal settling): the steady "
-        "offset becomes v t + a t²/2", source="not in the seed; a drifting stage settles over hours")
+        "offset becomes v t + a t²/2", source="not in the seed; a drifting stage settles over hours",
+        lo=-MAX_DRIFT_ACCELERATION, hi=MAX_DRIFT_ACCELERATION)
     jump: float = param(0.0, "nm", "size of a sudden offset jump (a knock, a thermal shock); 0: none",
-                        source="not in the seed", nonnegative=True)
+                        source="not in the seed", nonnegative=True, hi=MAX_DRIFT_JUMP)
     jump_at: float = param(600.0, "s", "time of the first jump after the drift's zero (the simulated "
                            "instrument's start)", nonnegative=True)
     jump_every: float = param(0.0, "s", "period of repeated jumps (steps may overlap); 0: only once",
@@ -213,7 +222,8 @@ class NoiseParams:
     """Measurement noise: the scene's fixed `[noise]` table."""
 
     height_rms: float = param(0.3, "nm", "height noise per sample", required=True,
-                              source="typical tapping-mode noise floor in air", nonnegative=True)
+                              source="typical tapping-mode noise floor in air", nonnegative=True,
+                              hi=MAX_HEIGHT_NOISE)
 
     def __post_init__(self) -> None:
         validate(self)

@@ -250,9 +250,10 @@ def _checked(z: np.ndarray, ps: float, origin, src: str, meta: dict) -> HeightIm
     if not valid:
         raise InputError(src, None, "the image has no finite height")
     invalid = 1.0 - valid / z.size
-    if invalid > MAX_INVALID_SHARE:
-        raise InputError(src, None, f"{invalid:.0%} of the pixels have no finite height (NaN or "
-                                    f"infinity); at most {MAX_INVALID_SHARE:.0%} may")
+    if invalid > MAX_INVALID_SHARE:     # the counts too: 50.01 % shows as "50%", the limit
+        raise InputError(src, None, f"{z.size - valid} of {z.size} pixels ({invalid:.0%}) have no finite "
+                                    f"height (NaN or infinity); at most {MAX_INVALID_SHARE:.0%} "
+                                    f"({math.floor(MAX_INVALID_SHARE * z.size)}) may")
     top = float(np.max(np.abs(z[finite])))
     if top > MAX_HEIGHT:
         raise InputError(src, None, f"heights reach {top:.3g} nm; at most {MAX_HEIGHT:g} nm (1 mm) is read "

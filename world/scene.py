@@ -102,6 +102,10 @@ def scene_from_dict(data: dict, source: str | None = None) -> Scene:
         polys.append(poly)
 
     params = WorldParams.from_document(t)
+    xy = params.scanner.xy_range
+    if area[0] > xy[0] or area[1] > xy[1]:      # the sample sits centred under the scanner
+        t.fail("area", f"{area[0]:g} x {area[1]:g} nm exceeds the scanner's XY range {xy[0]:g} x "
+                       f"{xy[1]:g} nm ([scanner] xy_range)")
 
     check_placement("object", otables, objects, area, btables, polys)
 

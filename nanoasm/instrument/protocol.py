@@ -32,6 +32,18 @@ Region = tuple[float, float, float, float]
 
 AXES = ("x", "y", "z")
 
+#: Largest XY or Z travel of a scanner, nm (1 mm; ``xy_range``, ``z_range``). AFM
+#: scanners travel 1-150 µm, large flexure stages a few hundred; beyond it, a wrong unit.
+MAX_SCANNER_RANGE = 1e6
+#: Slowest and fastest DAC sample clock, Hz (``sample_rate``; the default 1 kHz, the
+#: bundled NI card's 10 kHz). Below 100 Hz a sample steps the tip by 500 nm at the default
+#: slew limit; above 100 kHz a sample's step (0.5 nm) is far below a DAC code (1.4 nm at
+#: 16 bits over 90 µm) and buys nothing, while every sample is computed, streamed and
+#: simulated: a dry-run at 100 kHz takes 34 s where 1 kHz takes 2, and at 1 GHz one travel
+#: is 44 million samples (1 GB).
+MIN_SAMPLE_RATE = 100.0
+MAX_SAMPLE_RATE = 100_000.0
+
 
 @dataclass(frozen=True)
 class InstrumentConfig:
@@ -42,8 +54,10 @@ class InstrumentConfig:
     """
 
     xy_range: tuple[float, float] = param(
-        (90000.0, 90000.0), "nm", "XY travel of the scanner", source="seed 2.4, 3.2", positive=True)
-    z_range: float = param(5000.0, "nm", "Z travel of the scanner", source="seed 2.4, 3.2", positive=True)
+        (90000.0, 90000.0), "nm", "XY travel of the scanner", source="seed 2.4, 3.2", positive=True,
+        hi=MAX_SCANNER_RANGE)
+    z_range: float = param(5000.0, "nm", "Z travel of the scanner", source="seed 2.4, 3.2", positive=True,
+                           hi=MAX_SCANNER_RANGE)
     nm_per_volt: tuple[float, float, float] = param(
         (4500.0, 4500.0, 250.0), "nm/V", "scanner calibration per axis (XYZ): travel per DAC volt",
         source="range over the ±10 V span", positive=True)
@@ -52,7 +66,8 @@ class InstrumentConfig:
     volt_range: tuple[float, float] = param(
         (-10.0, 10.0), "V", "DAC output span [low, high]", source="±10 V, seed 3.6.4")
     sample_rate: float = param(1000.0, "Hz", "DAC sample rate of streamed chunks",
-                               source="1 kHz haptic/real-time loop; not in the seed", positive=True)
+                               source="1 kHz haptic/real-time loop; not in the seed", positive=True,
+                               lo=MIN_SAMPLE_RATE, hi=MAX_SAMPLE_RATE)
     max_speed: float = param(50000.0, "nm/s", "slew limit, XY (Euclidean) and Z",
                              source="realistic for a 90 µm piezo tube", positive=True)
     max_accel: float = param(1.0e6, "nm/s²", "acceleration limit for trajectory shaping; not checked "

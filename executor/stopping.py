@@ -1,0 +1,65 @@
+"""Stopping a run by a signal: Ctrl-C (SIGINT) and SIGTERM while a run engine runs.
+
+A signal stops the run: its handler raises ``KeyboardInterrupt`` or the engine's
+``Terminated`` in the main thread, and the engine cleans up (parks the instrument, sends
+``stop``, closes the log). From the moment the engine takes the stop in hand (the first
+statement of its ``except`` or ``finally``, a plain attribute store that no signal
+handler can run before) every further SIGINT and SIGTERM is held until the clean-up
+ends: a second Ctrl-C 1 ms after the first, or one while a completed run closes its log,
+cannot cut the log's ``/stop`` record or its closing. A signal held while a run that had
+not been stopped cleaned up is raised after the clean-up, so it still stops the program.
+
+Until then a further signal raises again, as Python's own handler does: a first
+``KeyboardInterrupt`` swallowed by library code that calls back into Python and clears
+its errors (seen inside ``enum``'s ``__getattr__`` during a simulated push) is not the
+end of Ctrl-C.
+
+Only the main thread handles signals. SIGINT is taken over only from Python's default
+handler: one ignored (a sweep's worker) or the host program's own is left alone.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+
+
+class StopSignals:
+    """SIGINT and SIGTERM for one run: :meth:`install`; set :attr:`stopping` when the
+    run's stop or end is in hand (further signals are held from then on); :meth:`restore`
+    after the clean-up, then :meth:`raise_held`. ``terminated`` is what SIGTERM raises."""
+
+    def __init__(self, terminated: type[BaseException]):
+        self.terminated = terminated
+        self.stopping = False
+        self.held: int | None = None          # the first signal received while stopping
+        self._previous: dict[int, object] = {}
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+            self._previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._handle)
+        self._previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._handle)
+
+    def _handle(self, signum, frame) -> None:
+        if self.stopping:
+            if self.held is None:
+                self.held = signum
+            return
+        self._raise(signum)
+
+    def _raise(self, signum: int) -> None:
+        raise KeyboardInterrupt if signum == signal.SIGINT else self.terminated()
+
+    def restore(self) -> None:
+        """The handlers from before :meth:`install`."""
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous.clear()
+
+    def raise_held(self) -> None:
+        """Raise the signal held during a clean-up, if any (after :meth:`restore`)."""
+        if self.held is not None:
+            signum, self.held = self.held, None
+            self._raise(signum)

@@ -1,0 +1,124 @@
+"""A second Ctrl-C (or SIGTERM) while a run stops cannot cut its log's /stop record or its
+closing (issue 15, signals): it is held until the clean-up ends."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from runlogkit import cli_env, particle_bowtie, stop_when
+from test_engine import Recorder, Stage, away
+
+from nanoasm.examples import path as example
+from nanoasm.executor.documents import STOP
+from nanoasm.executor.engine import Msg, RunEngine, RunState, Terminated
+from nanoasm.executor.logread import read_log
+from nanoasm.executor.resume import resume_point
+from nanoasm.simkeep import read_sim_state, sim_state_path
+
+
+class SlowToClose(Recorder):
+    """A subscriber that receives ``signum`` while it closes (as a log does while it
+    writes its summary), then finishes closing."""
+
+    def __init__(self, signum: int):
+        super().__init__()
+        self.signum = signum
+
+    def close(self):
+        os.kill(os.getpid(), self.signum)
+        time.sleep(0.05)                  # the handler runs here, or at the next bytecode
+        self.closed = True
+
+
+def _interrupted(stage):
+    yield from away(stage)
+    os.kill(os.getpid(), signal.SIGINT)
+    yield Msg("clock")
+    raise AssertionError("Ctrl-C did not stop the run")
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_second_signal_while_a_stopped_run_cleans_up_is_held(signum):
+    stage, rec = Stage(), SlowToClose(signum)
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    engine = RunEngine(stage, [rec])
+    with pytest.raises(KeyboardInterrupt):          # the first signal's, not the second's
+        engine.run(_interrupted(stage))
+    assert engine.state is RunState.ABORTED and engine.reason == "interrupted (Ctrl-C)"
+    assert rec.closed and rec.docs[-1][0] == STOP and rec.docs[-1][1].state == "aborted"
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
+@pytest.mark.parametrize("signum,raised", [(signal.SIGINT, KeyboardInterrupt), (signal.SIGTERM, Terminated)])
+def test_a_signal_while_a_completed_run_closes_waits_for_the_close(signum, raised):
+    stage, rec = Stage(), SlowToClose(signum)
+    engine = RunEngine(stage, [rec])
+    with pytest.raises(raised):
+        engine.run(away(stage))
+    assert engine.state is RunState.DONE and rec.closed and rec.docs[-1][1].state == "done"
+
+
+def test_a_ctrl_c_swallowed_by_library_code_leaves_the_next_one_armed():
+    """Code that calls back into Python and clears its errors may swallow the first
+    KeyboardInterrupt (seen in a simulated push): the next Ctrl-C stops the run as ever."""
+    stage, rec = Stage(), Recorder()
+
+    def swallowing():
+        yield from away(stage)
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+        except KeyboardInterrupt:
+            pass
+        yield Msg("clock")
+        yield from _interrupted(stage)
+
+    engine = RunEngine(stage, [rec])
+    with pytest.raises(KeyboardInterrupt):
+        engine.run(swallowing())
+    assert engine.state is RunState.ABORTED and rec.closed and rec.docs[-1][1].state == "aborted"
+
+
+def test_an_ignored_ctrl_c_stays_ignored():
+    """A sweep's workers ignore SIGINT (their parent handles it): a run keeps it so."""
+    stage, rec = Stage(), Recorder()
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        def ignored():
+            yield from away(stage)
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)
+            return "finished"
+
+        assert RunEngine(stage, [rec]).run(ignored()) == "finished"
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+@pytest.mark.parametrize("gap", [0.001, 0.005])
+def test_two_ctrl_c_a_few_ms_apart_leave_a_closed_resumable_log_and_one_line(tmp_path, gap):
+    """The second Ctrl-C lands in the run's clean-up (held) or while the command ends
+    (ignored: it used to end the process with exit -2)."""
+    _, layout = particle_bowtie()
+    layout.save(tmp_path / "particles.toml")
+    log = tmp_path / "run.mcap"
+    # a shell may start us with SIGINT ignored, which the child would inherit
+    proc = subprocess.Popen([sys.executable, "-m", "nanoasm.cli", "dry-run", str(example("bowtie_scene.toml")),
+                             "particles.toml", "--seed", "3", "--log", str(log)], cwd=tmp_path, env=cli_env(),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    # once the first checkpoint is logged and its world kept
+    err = stop_when(proc, sim_state_path(log).exists, [(0.0, signal.SIGINT), (gap, signal.SIGINT)])
+    assert proc.returncode == 130 and "Traceback" not in err, err
+    assert err.strip().splitlines() == [f"{log}: written", "nanoasm: interrupted"], err
+    contents = read_log(log)
+    assert contents.complete, contents.problem
+    assert [m.data["reason"] for m in contents.topic("/stop")] == ["interrupted (Ctrl-C)"]
+    point = resume_point(log, "dry-run", at=read_sim_state(sim_state_path(log))["t"])
+    assert point.state["remaining"]
