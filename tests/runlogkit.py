@@ -50,15 +50,23 @@ def logged_dry_run(path, *, seed: int = 3, strategy: str = "full"):
 
 def kill_when(proc, ready, timeout: float = 180.0) -> None:
     """SIGKILL the subprocess ``proc`` as soon as ``ready()`` is true (polled); fails the
-    test if the process ends first. The process is reaped whatever happens."""
+    test if the process ends first. The process is reaped whatever happens.
+
+    ``ready`` may read a log the process is still creating: an :class:`InputError` (a file
+    created but not yet holding its first bytes) counts as not ready yet."""
     import signal
     import time
+
+    from nanoasm.errors import InputError
 
     try:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline and proc.poll() is None:
-            if ready():
-                break
+            try:
+                if ready():
+                    break
+            except InputError:
+                pass
             time.sleep(0.05)
         assert proc.poll() is None, f"the process ended before it could be killed: {proc.stderr.read()!r}"
         proc.send_signal(signal.SIGKILL)
