@@ -187,8 +187,9 @@ class Assembly:
                                     f"to the rest",), {"level": "warn"})
             if self.strategy.scans:
                 astray = o.kind == "rod" and not lost and not self._course_clear(o, ops[i:])
-                if lost or (self.strategy.replans and (outcome == "failed" or off > limit or astray)):
-                    ops, i, done = (yield from self._replan(op, outcome, done, off, astray)), 0, 0
+                moved, ctx.corrected = ctx.corrected, False     # by a relocalisation
+                if lost or (self.strategy.replans and (outcome == "failed" or off > limit or astray or moved)):
+                    ops, i, done = (yield from self._replan(op, outcome, done, off, astray, moved)), 0, 0
                 elif op.target is not None and all(p.object != op.object for p in ops[i:]):
                     extra = courses.correction(self.layout, ctx.belief, op, corrections, opts.max_corrections,
                                                self.plan_options, max(p.id for p in ops) + 1)
@@ -221,7 +222,7 @@ class Assembly:
         wall["execute"] += now - mark[0] - (wall["plan"] - mark[1])
         return now, wall["plan"]
 
-    def _replan(self, op: Operation, outcome: str, done: int, off: float, astray: bool):
+    def _replan(self, op: Operation, outcome: str, done: int, off: float, astray: bool, moved: bool = False):
         """Plan what remains from the present belief after ``op``; returns its operations."""
         ctx = self.ctx
         w0 = time.perf_counter()
@@ -233,7 +234,8 @@ class Assembly:
         self.course.follow(now, ops)
         ctx.moving = {p.object for p in ops}
         why = ("lost" if outcome == "lost" else f"{off:.0f} nm off course"
-               + (", its course now too close to a neighbour" if astray else ""))
+               + (", its course now too close to a neighbour" if astray else "")
+               + (", objects moved by a relocalisation" if moved else ""))
         yield Msg("event", (f"replanned after {op.object} {outcome} ({why}): {len(ops)} push(es) remain",))
         yield Msg("emit", ("plan", rest.plan.to_dict()))
         return ops

@@ -40,7 +40,8 @@ class RunContext:
     and relocalisation windows; ``timing``: what a scan line costs on this instrument;
     ``here``: the tip's last known XY (scanner frame); ``full_scan``: the first full scan
     in the layout frame and ``env_objects`` what it showed (neither kept in
-    checkpoints: a run log holds them)."""
+    checkpoints: a run log holds them). ``corrected``: a relocalisation moved believed
+    objects since the plan was last made (the plan is made again after the push)."""
 
     config: Any                         # the instrument's InstrumentConfig
     options: ExecOptions
@@ -58,6 +59,7 @@ class RunContext:
     here: np.ndarray | None = None
     full_scan: Any = None
     env_objects: tuple = ()
+    corrected: bool = False
 
     def __post_init__(self) -> None:
         if self.scan_opts is None:

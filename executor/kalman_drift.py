@@ -258,7 +258,7 @@ class Kalman:
             refs.moved(obj_id, ref, seen_t)
             return False
         if self.filter.measure_projected(self.clamp(t), z, np.eye(2), R, label=obj_id, static=static).accepted:
-            self._accepted()
+            self._accepted(t)
             return True
         refs.moved(obj_id, ref, seen_t)
         self.reject(obj_id, t)
@@ -276,7 +276,7 @@ class Kalman:
         z, static = creep_terms.with_creep(self, z, static, creep_sens)
         m = self.filter.measure_projected(self.clamp(t), z, H, R, label=feature_id, static=static)
         if m.accepted:
-            self._accepted()
+            self._accepted(t)
         else:
             self.reject(feature_id, t)
         return m.accepted
@@ -285,8 +285,8 @@ class Kalman:
         """A reference was rejected, or not found where it should be, at ``t``."""
         self.trust.reject(label, t)
 
-    def _accepted(self) -> None:
-        self.trust.accept()
+    def _accepted(self, t: float) -> None:
+        self.trust.accept(t)
 
     # -- relocalisation (when: :class:`~nanoasm.executor.trust.Trust`) ---------------------
     def needs_relocalisation(self, t: float, options: ExecOptions) -> tuple[str, str] | None:

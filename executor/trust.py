@@ -13,13 +13,17 @@ from .strategy import ExecOptions
 class Trust:
     """``rejected``: the references rejected in the present streak, in order (since
     ``streak_start``, instrument s); ``pause``: the stand-still (s) of the last resume;
-    ``failed_at``/``relocalised_at``: when a relocalisation last failed/succeeded."""
+    ``failed_at``/``relocalised_at``: when a relocalisation last failed/succeeded;
+    ``confirmed_at``: when a reference (or a relocalisation) last agreed with the estimate.
+    A drift jump happened after ``confirmed_at`` and, when a streak of rejections led to
+    a relocalisation, before ``streak_start``."""
 
     rejected: list[str] = field(default_factory=list)
     streak_start: float | None = None
     pause: float = 0.0
     failed_at: float | None = None
     relocalised_at: float | None = None
+    confirmed_at: float | None = None
 
     @property
     def rejections(self) -> int:
@@ -33,9 +37,11 @@ class Trust:
             self.streak_start = float(t)
         self.rejected.append(label)
 
-    def accept(self) -> None:
-        """A reference agreed: the streak ends."""
+    def accept(self, t: float | None = None) -> None:
+        """A reference agreed (at ``t``, when given): the streak ends."""
         self.rejected, self.streak_start = [], None
+        if t is not None:
+            self.confirmed_at = float(t)
 
     def needs(self, t: float, sigma: float, options: ExecOptions) -> tuple[str, str] | None:
         """Why the estimate (of σ ``sigma`` nm at ``t``) must be relocalised, as ``(kind,
@@ -57,7 +63,7 @@ class Trust:
         """Relocalised at ``t``: the references the streak rejected did not move, the
         drift did; returns them (to re-admit) and ends the streak."""
         forgiven = sorted(set(self.rejected))
-        self.accept()
+        self.accept(t)
         self.pause, self.failed_at, self.relocalised_at = 0.0, None, float(t)
         return forgiven
 
@@ -68,13 +74,14 @@ class Trust:
 
     def state_dict(self) -> dict:
         return {"rejected": list(self.rejected), "streak_start": self.streak_start,
-                "failed_at": self.failed_at, "relocalised_at": self.relocalised_at}
+                "failed_at": self.failed_at, "relocalised_at": self.relocalised_at,
+                "confirmed_at": self.confirmed_at}
 
     @classmethod
     def from_state(cls, state: dict) -> Trust:
         """From :meth:`state_dict`'s keys (missing ones: a fresh trust)."""
         return cls(list(state.get("rejected", [])), state.get("streak_start"), 0.0,
-                   state.get("failed_at"), state.get("relocalised_at"))
+                   state.get("failed_at"), state.get("relocalised_at"), state.get("confirmed_at"))
 
 
 __all__ = ["Trust"]

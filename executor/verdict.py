@@ -24,6 +24,7 @@ import numpy as np
 from nanoasm.cad.layout import Layout
 
 from .context import RunContext
+from .drift_steps import suspect_drift
 from .engine import Msg
 from .local_scan import particle_before, rod_before
 from .scan_steps import clear_direction, run_pattern
@@ -93,58 +94,75 @@ def _angle_error(a: float, b: float) -> float:
 
 def check_slots(ctx: RunContext, layout: Layout, assignment) -> Any:
     """Scan every slot of ``layout`` (plan stub); returns its :class:`SlotVerdict`s in
-    the layout's order. ``assignment``: the run's final (target, object) pairs."""
-    tol = layout.tolerance
+    the layout's order. ``assignment``: the run's final (target, object) pairs.
+
+    A slot whose assigned object is not found within tolerance may be a slot missed, or
+    the drift estimate gone wrong (a jump during the last pushes or these scans): a
+    reference is measured at once (:func:`~.drift_steps.suspect_drift`), and if the
+    estimate had to be relocalised every slot is scanned again, once."""
     assigned = {a.target: a.object for a in assignment}
-    out = []
-    for target in layout.targets:
-        obj = assigned.get(target.id)
-        t = yield Msg("clock")
-        off = ctx.offset(t)
-        reach = tol.position + ctx.r_max(t)
-        at = np.asarray(target.at, float) + off
-        if target.kind == "rod":
-            pattern = rod_before(at, target.angle, target.length, target.diameter, reach, measure_angle=True,
-                                 options=ctx.scan_opts)
-        else:
-            # short lines: a slot's neighbours in a packed array are a few tens of nm away
-            opts = replace(ctx.scan_opts, margin=CHECK_MARGIN)
-            half = target.radius + reach + CHECK_MARGIN
-            exclude = {obj} if obj is not None else set()
-            direction = clear_direction(ctx, np.asarray(target.at, float), half, exclude=exclude)
-            pattern = particle_before(at, target.diameter, reach, direction=direction, options=opts)
-        res = yield from run_pattern(ctx, pattern)
-        for turn in RETRY_TURNS:
-            if res.found or target.kind == "rod" or "cut by the line end" not in res.reason:
+    for again in (False, True):
+        out = []
+        for target in layout.targets:
+            obj = assigned.get(target.id)
+            verdict = yield from _check_slot(ctx, target, obj, layout.tolerance)
+            out.append(verdict)
+            if not again and verdict.state == "missed" and (yield from suspect_drift(ctx, obj, target.at)):
+                yield Msg("event", ("the drift estimate was relocalised during the check scans: "
+                                    "every slot is scanned again",), {"level": "warn"})
                 break
-            # a neighbour at a line's end hid the edge (one the belief does not know of
-            # there): again, the lines turned
-            c, s_ = math.cos(math.radians(turn)), math.sin(math.radians(turn))
-            turned = np.array([c * direction[0] - s_ * direction[1], s_ * direction[0] + c * direction[1]])
-            res = yield from run_pattern(ctx, particle_before(at, target.diameter, reach, direction=turned,
-                                                              options=opts))
-        state, error = ("missed" if obj is not None else "unfilled"), None
-        if res.found:
-            t_scan = ctx.scan_ref if ctx.scan_ref is not None else t
-            centre = np.asarray(res.centre, float) - ctx.offset(t_scan)
-            error = math.dist(centre, target.at)
-            good = error <= tol.position and _size_ok(target, res, tol)
-            if target.kind == "rod":
-                good = good and res.angle is not None and _angle_error(res.angle, target.angle) <= tol.angle
-            rod = _rod_there(ctx, centre) if good and target.kind != "rod" else None
-            if good and target.kind != "rod" and rod is None and not _round(res):
-                good = False
-                yield Msg("event", (f"slot {target.id}: the object found is wider across than a particle "
-                                    f"of its height: an elongated object",), {"level": "warn"})
-            if rod is not None:
-                yield Msg("event", (f"slot {target.id}: the object found lies on the axis of rod {rod}; "
-                                    f"not taken for a particle",), {"level": "warn"})
-            elif good:
-                state = "filled"
-            if rod is None and (good or error > tol.position) and obj is not None \
-                    and obj in ctx.belief.objects and obj not in ctx.belief.lost \
-                    and math.dist(ctx.belief[obj].at, centre) <= reach + tol.position:
-                cov = res.cov if res.cov is not None else np.eye(2) * 4.0
-                ctx.observe(obj, centre, t_scan, cov, angle=res.angle if target.kind == "rod" else None)
-        out.append(SlotVerdict(target.id, obj, state, error))
+        else:
+            break
     return tuple(out)
+
+
+def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
+    """The check scan of one slot (plan stub): its :class:`SlotVerdict`."""
+    t = yield Msg("clock")
+    off = ctx.offset(t)
+    reach = tol.position + ctx.r_max(t)
+    at = np.asarray(target.at, float) + off
+    if target.kind == "rod":
+        pattern = rod_before(at, target.angle, target.length, target.diameter, reach, measure_angle=True,
+                             options=ctx.scan_opts)
+    else:
+        # short lines: a slot's neighbours in a packed array are a few tens of nm away
+        opts = replace(ctx.scan_opts, margin=CHECK_MARGIN)
+        half = target.radius + reach + CHECK_MARGIN
+        exclude = {obj} if obj is not None else set()
+        direction = clear_direction(ctx, np.asarray(target.at, float), half, exclude=exclude)
+        pattern = particle_before(at, target.diameter, reach, direction=direction, options=opts)
+    res = yield from run_pattern(ctx, pattern)
+    for turn in RETRY_TURNS:
+        if res.found or target.kind == "rod" or "cut by the line end" not in res.reason:
+            break
+        # a neighbour at a line's end hid the edge (one the belief does not know of
+        # there): again, the lines turned
+        c, s_ = math.cos(math.radians(turn)), math.sin(math.radians(turn))
+        turned = np.array([c * direction[0] - s_ * direction[1], s_ * direction[0] + c * direction[1]])
+        res = yield from run_pattern(ctx, particle_before(at, target.diameter, reach, direction=turned,
+                                                          options=opts))
+    state, error = ("missed" if obj is not None else "unfilled"), None
+    if res.found:
+        t_scan = ctx.scan_ref if ctx.scan_ref is not None else t
+        centre = np.asarray(res.centre, float) - ctx.offset(t_scan)
+        error = math.dist(centre, target.at)
+        good = error <= tol.position and _size_ok(target, res, tol)
+        if target.kind == "rod":
+            good = good and res.angle is not None and _angle_error(res.angle, target.angle) <= tol.angle
+        rod = _rod_there(ctx, centre) if good and target.kind != "rod" else None
+        if good and target.kind != "rod" and rod is None and not _round(res):
+            good = False
+            yield Msg("event", (f"slot {target.id}: the object found is wider across than a particle "
+                                f"of its height: an elongated object",), {"level": "warn"})
+        if rod is not None:
+            yield Msg("event", (f"slot {target.id}: the object found lies on the axis of rod {rod}; "
+                                f"not taken for a particle",), {"level": "warn"})
+        elif good:
+            state = "filled"
+        if rod is None and (good or error > tol.position) and obj is not None \
+                and obj in ctx.belief.objects and obj not in ctx.belief.lost \
+                and math.dist(ctx.belief[obj].at, centre) <= reach + tol.position:
+            cov = res.cov if res.cov is not None else np.eye(2) * 4.0
+            ctx.observe(obj, centre, t_scan, cov, angle=res.angle if target.kind == "rod" else None)
+    return SlotVerdict(target.id, obj, state, error)
