@@ -18,6 +18,7 @@ from .belief import Belief
 from .context import RunContext
 from .course import Course
 from .estimators import estimator_from_state
+from .pivots import Pivots
 from .landmarks import Landmarks
 from .ledger import RunLedger
 from .reference_choice import LineTiming
@@ -40,6 +41,7 @@ def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str
         "belief": ctx.belief.state_dict(), "estimator": ctx.drift.state_dict(),
         "references": ctx.refs.state_dict(), "course": asm.course.state_dict(),
         "landmarks": ctx.landmarks.state_dict(), "line_timing": ctx.timing.state_dict(),
+        "pivots": ctx.pivots.state_dict(),
         "moving": sorted(ctx.moving), **ctx.ledger.state_dict(),
         "drift": ctx.ledger.drift[-1] if ctx.ledger.drift else None}
 
@@ -65,6 +67,7 @@ def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]
                          RunLedger.from_state(st), moving=set(st["moving"]))
     asm.course = Course.from_state(st["course"])
     asm.ctx.landmarks = Landmarks.from_state(st.get("landmarks"))
+    asm.ctx.pivots = Pivots.from_state(st.get("pivots"))
     if st.get("line_timing"):
         asm.ctx.timing = LineTiming.from_state(st["line_timing"])
     asm.ctx.full_scan, asm.ctx.env_objects = st.get("full_scan"), asm.env.objects

@@ -21,6 +21,7 @@ from nanoasm.bodies import Body
 from .belief import Belief
 from .estimators import DriftEstimator
 from .landmarks import Landmarks
+from .pivots import Pivots
 from .ledger import RunLedger
 from .reference_choice import LineTiming
 from .references import References
@@ -41,7 +42,8 @@ class RunContext:
     ``here``: the tip's last known XY (scanner frame); ``full_scan``: the first full scan
     in the layout frame and ``env_objects`` what it showed (neither kept in
     checkpoints: a run log holds them). ``corrected``: a relocalisation moved believed
-    objects since the plan was last made (the plan is made again after the push)."""
+    objects since the plan was last made (the plan is made again after the push).
+    ``pivots``: every pushed rod's pose-and-pivot-offset filter."""
 
     config: Any                         # the instrument's InstrumentConfig
     options: ExecOptions
@@ -60,6 +62,7 @@ class RunContext:
     full_scan: Any = None
     env_objects: tuple = ()
     corrected: bool = False
+    pivots: Pivots = field(default_factory=Pivots)
 
     def __post_init__(self) -> None:
         if self.scan_opts is None:

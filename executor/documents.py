@@ -107,7 +107,9 @@ class StopDoc:
 class PushDoc:
     """One push done: the operation, its verdict, the end time, the drift offset then
     (scanner position of the layout origin), the object's pose before (layout frame),
-    the peak lateral force (nN) and the belief about the object after."""
+    the peak lateral force (nN) and the belief about the object after; for a rod, its
+    pivot offset estimate (``{offset, std, pushes}``, fractions of its length: see
+    :mod:`~nanoasm.executor.pivots`), None otherwise."""
 
     op: Operation
     verdict: str
@@ -116,6 +118,7 @@ class PushDoc:
     before: tuple[float, float]
     peak_force: float | None
     belief: Body
+    pivot: dict | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "offset", pair(self.offset))
@@ -129,16 +132,20 @@ class PushDoc:
         return self.verdict in FAILED_VERDICTS
 
     def to_dict(self) -> dict:
-        return {"op": self.op.to_dict(), "verdict": self.verdict, "t": self.t, "offset": list(self.offset),
-                "before": list(self.before), "peak_force": self.peak_force, "belief": self.belief.to_dict()}
+        d = {"op": self.op.to_dict(), "verdict": self.verdict, "t": self.t, "offset": list(self.offset),
+             "before": list(self.before), "peak_force": self.peak_force, "belief": self.belief.to_dict()}
+        if self.pivot is not None:
+            d["pivot"] = dict(self.pivot)
+        return d
 
     @classmethod
     def from_dict(cls, d: Any) -> PushDoc:
         f = Fields(PUSH, d)
         op = f.parse(operation_from_stored, f.get("op"))
         belief = f.parse(body_from_stored, f.table("belief"))
+        pivot = f.mapping("pivot", float) if f.data.get("pivot") is not None else None
         return cls(op, f.string("verdict"), f.number("t"), f.numbers("offset", 2), f.numbers("before", 2),
-                   f.number("peak_force", optional=True), belief)
+                   f.number("peak_force", optional=True), belief, pivot)
 
 
 @dataclass(frozen=True)

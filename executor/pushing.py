@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 from nanoasm.bodies import Body
-from nanoasm.planner import Operation, PlanOptions
+from nanoasm.planner import Expect, Operation, PlanOptions
 from nanoasm.world.cantilever import Cantilever
 
 from .context import RunContext
@@ -90,6 +90,7 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
             at, angle = course.starts.get(op.id, (start.at, start.angle))
             expected = Body(obj_id, "rod", at, start.diameter, angle, start.length)
             op = rod_push(op, expected, start)
+            ctx.pivots.seen(start, cov)
         else:
             op = particle_push(op, start.at, start.radius, plan_options.tip_radius, plan_options.lead)
             if op is None:
@@ -105,6 +106,9 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
     ledger = ctx.ledger
     ledger.counts["pushes"] += legs
     ledger.pushed_once(obj_id)
+    if scans and start.kind == "rod" and not verdict.failed:    # the model with this rod's pivot
+        pose = ctx.pivots.pushed(obj_id, op.tip_path, plan_options.tip_radius)
+        op = Operation(op.id, op.object, op.target, op.tip_path, Expect(pose.at, pose.angle), op.kind)
     ctx.belief.expect(obj_id, op.expect.at, op.expect.angle)
     if verdict.failed:
         ledger.counts["failed_pushes"] += 1
@@ -133,11 +137,14 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
             yield Msg("event", (f"push of {obj_id} left it where it was: slipped over",), {"level": "warn"})
         if verdict.status == "slipped":
             course.slipped(obj_id)
+        if body.kind == "rod":
+            (ctx.pivots.restart if verdict.failed else ctx.pivots.seen)(body, cov)
     t_end = yield Msg("clock")
     _quarantine(ctx, op, [start, ctx.belief[obj_id]], plan_options, t_end)
-    yield Msg("emit", ("push", {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,
-                                "offset": [float(v) for v in ctx.offset(t_end)],
-                                "before": [float(v) for v in start.at],
-                                "peak_force": verdict.peak_force,
-                                "belief": ctx.belief[obj_id].to_dict()}))
+    doc = {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,
+           "offset": [float(v) for v in ctx.offset(t_end)], "before": [float(v) for v in start.at],
+           "peak_force": verdict.peak_force, "belief": ctx.belief[obj_id].to_dict()}
+    if obj_id in ctx.pivots.rods:
+        doc["pivot"] = ctx.pivots.rods[obj_id].to_dict()
+    yield Msg("emit", ("push", doc))
     return "failed" if verdict.failed else "ok"

@@ -53,15 +53,17 @@ def _unit(deg: float) -> tuple[float, float]:
     return math.cos(t), math.sin(t)
 
 
-def simulate_push(rod: Body, tip0: Point, tip1: Point, tip_radius: float, step: float | None = None) -> Body:
-    """Pose after the tip moves straight from ``tip0`` to ``tip1`` (pivot model)."""
+def simulate_push(rod: Body, tip0: Point, tip1: Point, tip_radius: float, step: float | None = None,
+                  pivot_offset: float = 0.0) -> Body:
+    """Pose after the tip moves straight from ``tip0`` to ``tip1`` (pivot model, the pivot
+    moved along the axis by ``pivot_offset`` of the length: see ``rod_step``)."""
     pose = RodPose(rod.at[0], rod.at[1], rod.angle, rod.length, rod.diameter)
     dist = math.dist(tip0, tip1)
     n = max(1, math.ceil(dist / (step or max(rod.length / 400.0, 0.5))))
     dx, dy = (tip1[0] - tip0[0]) / n, (tip1[1] - tip0[1]) / n
     x, y = tip0
     for _ in range(n):
-        pose = rod_step(pose, (x, y), (dx, dy), tip_radius=tip_radius).pose
+        pose = rod_step(pose, (x, y), (dx, dy), tip_radius=tip_radius, pivot_offset=pivot_offset).pose
         x, y = x + dx, y + dy
     # keep the angle continuous (no modulo 180) so "end A" stays the same physical end
     angle = rod.angle + math.remainder(pose.angle - rod.angle, 360.0)

@@ -32,7 +32,7 @@ def docs():
         PushDoc(op=OP, verdict="pushing", t=101.0 / 3, offset=(1250.1, -0.0), before=(10.0, 20.0),
                 peak_force=3.25, belief=EnvObject("o3", "particle", (39.5, 20.1), 20.0, confidence=0.9)),
         PushDoc(op=ROD_OP, verdict="slipped", t=5.0, offset=(0.0, 0.0), before=(1.0, 2.0), peak_force=None,
-                belief=rod),
+                belief=rod, pivot={"offset": -0.021, "std": 0.004, "pushes": 3.0, "angle": 187.5}),
         PushDoc(op=OP, verdict="stuck", t=5.0, offset=(0.0, 0.0), before=(1.0, 2.0), peak_force=0.0,
                 belief=Body("o3", "particle", (1.0, 2.0), 20.0)),
         DriftDoc(t=7.0, offset=(0.1, 0.2), cov=((4.0, 0.5), (0.5, 9.0)), velocity=(1e-3, -2e-3)),
@@ -84,6 +84,8 @@ def test_the_dicts_are_the_logged_ones():
     assert list(res) == ["assignment", "unfilled", "pushed", "counts", "times", "wall", "failures", "epoch",
                          "origin"]
     assert as_dict({"t": 1}) == {"t": 1}
+    rod_push = docs()[3].to_dict()                  # a rod's push adds its pivot offset estimate
+    assert list(rod_push)[-1] == "pivot" and rod_push["pivot"]["offset"] == -0.021
 
 
 def test_nan_heights_are_kept():
@@ -111,10 +113,13 @@ def test_a_missing_key_or_a_wrong_type_is_named(doc):
     for key in doc.to_dict():
         if cls is CheckpointDoc and key not in ("format", "t", "drift"):
             continue                      # the state's inner keys are the executor's
-        with pytest.raises(DocumentError) as err:
-            cls.from_dict(_broken(doc, key, _MISSING))
-        assert f"{kind} document" in str(err.value) and key in str(err.value), str(err.value)
-        assert isinstance(err.value, ValueError) and isinstance(err.value, InputError)
+        if cls is PushDoc and key == "pivot":       # only rods' pushes have one
+            assert cls.from_dict(_broken(doc, key, _MISSING)).pivot is None
+        else:
+            with pytest.raises(DocumentError) as err:
+                cls.from_dict(_broken(doc, key, _MISSING))
+            assert f"{kind} document" in str(err.value) and key in str(err.value), str(err.value)
+            assert isinstance(err.value, ValueError) and isinstance(err.value, InputError)
         with pytest.raises(DocumentError) as err:
             cls.from_dict(_broken(doc, key, "x" if key != "text" and key != "level" and key != "state"
                                   and key != "reason" and key != "verdict" else 5))

@@ -164,7 +164,7 @@ class RodStep(NamedTuple):
 
 
 def rod_step(pose: RodPose, tip: tuple[float, float], step: tuple[float, float], *,
-             tip_radius: float = 0.0, branch: int = 1) -> RodStep:
+             tip_radius: float = 0.0, branch: int = 1, pivot_offset: float = 0.0) -> RodStep:
     """Move the tip from ``tip`` by ``step`` (nm) against a rod; return its new pose.
 
     The rod is the seed's line segment (Fig. 4.8b) with contact distance d/2 + tip
@@ -176,6 +176,10 @@ def rod_step(pose: RodPose, tip: tuple[float, float], step: tuple[float, float],
     picks the pivot at the bifurcation u = 0 exactly. The new angle is wrapped to
     [−180, 180). The pivot is that of the step's end point, so keep steps small
     against L (the result converges as the step shrinks).
+
+    ``pivot_offset`` moves the pivot along the axis (toward +angle) by that fraction of
+    L: a friction gradient along the rod (issue 14: 0.03 L for a gradient of about 60 %).
+    The rotation is the model's; the rod turns about the moved pivot.
     """
     x, y, ang, L, d = pose
     if not (L > 0 and d > 0 and tip_radius >= 0):
@@ -183,7 +187,7 @@ def rod_step(pose: RodPose, tip: tuple[float, float], step: tuple[float, float],
                          f"got {L!r}, {d!r}, {tip_radius!r}")
     if branch not in (-1, 1):
         raise ValueError(f"branch must be -1 or +1, got {branch!r}")
-    if not math.isfinite(x + y + ang + L + d + tip_radius + tip[0] + tip[1] + step[0] + step[1]):
+    if not math.isfinite(x + y + ang + L + d + tip_radius + tip[0] + tip[1] + step[0] + step[1] + pivot_offset):
         raise ValueError("pose, tip and step must be finite")
     t = math.radians(ang)
     c, s = math.cos(t), math.sin(t)
@@ -207,6 +211,7 @@ def rod_step(pose: RodPose, tip: tuple[float, float], step: tuple[float, float],
     beta = math.remainder(psi - target, 2.0 * math.pi)             # rotation about the pivot
     t1 = t + beta
     c1, s1 = math.cos(t1), math.sin(t1)
+    p += pivot_offset * L
     px, py = x + p * c, y + p * s
     angle = (ang + math.degrees(beta) + 180.0) % 360.0 - 180.0
     if angle >= 180.0:                                              # −tiny % 360 rounds to 360
