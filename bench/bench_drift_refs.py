@@ -116,14 +116,28 @@ def _fmt(v, d=3):
     return "-" if isinstance(v, float) and math.isnan(v) else (f"{v:.{d}g}" if isinstance(v, float) else str(v))
 
 
-def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: float) -> str:
-    commit = code_version(Path(__file__).parent)
+def provenance(script: str, argv: list[str], runs: int, seconds: float) -> list[str]:
+    """A results file's command and date lines: the code, the machine and its load."""
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
+    return [f"Command: `{shlex.join(['python', f'bench/{script}', *argv])}`  ",
+            f"Date: {datetime.date.today()}; code: {code_version(Path(__file__).parent)}; {runs} dry-runs in "
+            f"{seconds / 60:.1f} min on {os.cpu_count()} cores ({platform.machine()}, Python "
+            f"{platform.python_version()}, load {load:.1f}).", ""]
+
+
+def family_sweep(doc: str, families, out_name: str, one_run, report, argv: list[str]) -> int:
+    """A sweep of ``one_run((family, seed))`` over the command line's families and seeds,
+    ``report(rows, argv, seconds)`` written to the results file as it goes."""
+    a = sweep_args(doc, families, out_name).parse_args(argv)
+    todo = [(f, s) for f in a.families.split(",") for s in parse_seeds(a.seeds)]
+    sweep_to_file(todo, one_run, a.workers, Path(a.out),
+                  lambda done, secs: report([done[k] for k in range(len(todo)) if k in done], argv, secs))
+    return 0
+
+
+def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: float) -> str:
     lines = ["# Drift references: the estimate against the simulated truth", "",
-             f"Command: `{shlex.join(['python', 'bench/bench_drift_refs.py', *argv])}`  ",
-             f"Date: {datetime.date.today()}; code: {commit}; {len(rows) + len(jump_rows)} dry-runs in "
-             f"{seconds / 60:.1f} min on {os.cpu_count()} cores ({platform.machine()}, Python "
-             f"{platform.python_version()}, load {load:.1f}).", "",
+             *provenance("bench_drift_refs.py", argv, len(rows) + len(jump_rows), seconds),
              "Strategy `full`. σ: the estimate's standard deviation along its worst direction after the "
              "bootstrap; RMS: the estimate's error against the truth over every update; in 3σ: the share of "
              "updates whose squared Mahalanobis error is at most 11.83; references: instrument time of "

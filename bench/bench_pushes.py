@@ -18,17 +18,12 @@ assigned).
 
 from __future__ import annotations
 
-import datetime
 import math
-import os
-import platform
-import shlex
 import statistics
 import sys
 import time
-from pathlib import Path
 
-from bench_drift_refs import code_version, parse_seeds, sweep_args, sweep_to_file
+from bench_drift_refs import family_sweep, provenance
 
 FAMILIES = ("sparse", "dense", "mixed", "allpushed", "wide", "device")
 BINS = ((0.0, 300.0, "< 300 nm"), (300.0, 1000.0, "300-1000 nm"), (1000.0, 2000.0, "1-2 µm"),
@@ -86,13 +81,8 @@ def _fmt(v, d=3) -> str:
 
 
 def report(rows: list[dict], argv: list[str], seconds: float) -> str:
-    commit = code_version(Path(__file__).parent)
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
     lines = ["# Pushes that stay on course, and a verdict that tells the truth", "",
-             f"Command: `{shlex.join(['python', 'bench/bench_pushes.py', *argv])}`  ",
-             f"Date: {datetime.date.today()}; code: {commit}; {len(rows)} dry-runs in {seconds / 60:.1f} min on "
-             f"{os.cpu_count()} cores ({platform.machine()}, Python {platform.python_version()}, load {load:.1f}).",
-             "", "Strategy `full`. Off course: how far from the push's planned end the object truly came to "
+             *provenance("bench_pushes.py", argv, len(rows), seconds), "Strategy `full`. Off course: how far from the push's planned end the object truly came to "
              "rest (a push of a particle goes in legs; this is the whole push).", "",
              "## Pushes by planned length (every family)", "",
              "| length | pushes | median off nm | > 50 nm off | > 100 nm off |", "| --- | ---: | ---: | ---: | ---: |"]
@@ -124,12 +114,8 @@ def report(rows: list[dict], argv: list[str], seconds: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
-    a = sweep_args(__doc__, FAMILIES, "RESULTS_pushes.md").parse_args(argv)
-    todo = [(f, s) for f in a.families.split(",") for s in parse_seeds(a.seeds)]
-    sweep_to_file(todo, one_run, a.workers, Path(a.out),
-                  lambda done, secs: report([done[k] for k in range(len(todo)) if k in done], argv, secs))
-    return 0
+    return family_sweep(__doc__, FAMILIES, "RESULTS_pushes.md", one_run, report,
+                        sys.argv[1:] if argv is None else argv)
 
 
 if __name__ == "__main__":

@@ -227,7 +227,7 @@ class Assembly:
         ctx = self.ctx
         w0 = time.perf_counter()
         now = self.environment()
-        rest = self.replanner.remainder(now, done, force=True)
+        rest = self.replanner.remainder(now, done, force=True, pivot_offsets=ctx.pivots.offsets(now.objects))
         ctx.ledger.wall["plan"] += time.perf_counter() - w0
         ctx.ledger.counts["replans"] += 1
         ops = list(rest.plan.operations)

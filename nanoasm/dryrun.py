@@ -15,7 +15,7 @@ import math
 import os
 import time
 from contextlib import AbstractContextManager, nullcontext
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -139,6 +139,7 @@ class Outcome:
     drift: tuple[DriftPoint, ...] = ()
     truly_filled: tuple[str, ...] = ()
     pushes: tuple[PushEnd, ...] = ()
+    ids: dict[str, str] = field(default_factory=dict)     # identified id -> the scene's id
 
     @property
     def verdict_filled(self) -> tuple[str, ...]:
@@ -300,7 +301,7 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
                        scene_name=scene_name, seed=seed, objects=(initial, final), ids=ids)
     filled, errors = filled_slots(layout, report.assignment, {b.id: b for b in final})
     return Outcome(report, summary, filled, errors, drift_log.against(sim, summary.epoch),
-                   truth_slots(layout, final), push_log.ends(sim, summary, ids))
+                   truth_slots(layout, final), push_log.ends(sim, summary, ids), ids)
 
 
 

@@ -200,14 +200,18 @@ class _Session:
 
 
 def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None = None,
-                  progress: Progress | None = None) -> tuple[Plan, PlanStats]:
+                  progress: Progress | None = None, pivot_offsets: dict[str, float] | None = None
+                  ) -> tuple[Plan, PlanStats]:
     """Plan the assembly of ``layout`` from the objects of ``env``.
 
+    ``pivot_offsets``: rods' pivot offsets (fraction of the length, along each rod's
+    ``angle`` in ``env``) as a run has learnt them; the last pushes into a slot use them.
     Deterministic for a given input and ``options.seed``.
     """
     options = options or PlanOptions()
     t0 = time.perf_counter()
     s = _Session(layout, env, options)
+    s.rods.offsets = dict(pivot_offsets or {})
     matching = match(layout, [o for o in env.objects if o.id not in s.fixed_ids], options)
     efforts = {t: effort(s.targets[t], s.objects[o]) for t, o in matching.moves}
     nodes, blocked = order(matching.moves, s.targets, s.objects, s.fixed_ids, options.clearance, efforts)

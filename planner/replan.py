@@ -78,11 +78,12 @@ class Replanner:
         self.plan, self.stats = plan_assembly(self.layout, env, self.options, progress)
         return self.plan
 
-    def remainder(self, belief: Environment, done: int, *, force: bool = False) -> Remainder:
+    def remainder(self, belief: Environment, done: int, *, force: bool = False,
+                  pivot_offsets: dict[str, float] | None = None) -> Remainder:
         """The operations still to run after ``done`` of the current plan's operations.
 
         ``done`` counts operations of the plan returned last (after a replan, the new
-        plan starts again at 0).
+        plan starts again at 0). ``pivot_offsets``: see :func:`plan_assembly`.
         """
         if self.plan is None or self.base is None:
             raise RuntimeError("call start() before remainder()")
@@ -92,5 +93,5 @@ class Replanner:
             return Remainder(rest, False, dev)
         self.replans += 1
         self.base = belief
-        self.plan, self.stats = plan_assembly(self.layout, belief, self.options)
+        self.plan, self.stats = plan_assembly(self.layout, belief, self.options, pivot_offsets=pivot_offsets)
         return Remainder(self.plan, True, dev)

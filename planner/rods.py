@@ -36,6 +36,7 @@ from .assign import axis_error
 from .freespace import FreeSpace
 from .ompl_setup import Budget
 from .options import PlanOptions
+from .rod_horizon import plan_swings
 
 Point = tuple[float, float]
 
@@ -223,6 +224,8 @@ class RodController:
         self.clearance: float | None = None     # None: the space's own (full) clearance
         self.exempt: frozenset[int] = frozenset()
         self._library: dict[tuple, tuple[list[Macro], list[Macro]]] = {}
+        #: rods' pivot offsets (fraction of L, along their angle) for the last pushes
+        self.offsets: dict[str, float] = {}
         #: search expansions left to the present phase
         self.allowance = Budget(0, math.inf, "rod search")
 
@@ -311,13 +314,69 @@ class RodController:
         return None
 
     def _finish(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body, bool]:
-        """Greedy fine macros until within tolerance; small moves need only avoid contact."""
+        """The last pushes into the slot by the receding horizon
+        (:mod:`~nanoasm.planner.rod_horizon`); from where it is blocked, or stops getting
+        closer, greedy fine macros. Small moves need only avoid contact."""
         saved = self.clearance
         self.clearance = 0.0
         try:
-            return self._finish_greedy(rod, goal, budget)
+            out, rod = self._finish_horizon(rod, goal, budget)
+            if self._done(rod, goal, self.pos_tol, self.ang_tol):
+                return out, rod, True
+            rest, rod, ok = self._finish_greedy(rod, goal, budget - len(out))
+            return out + rest, rod, ok
         finally:
             self.clearance = saved
+
+    def _finish_horizon(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body]:
+        """Pushes chosen by :func:`~nanoasm.planner.rod_horizon.plan_swings` (its best plan
+        that is free of collisions), each made with the full model, while the horizon's
+        predicted error at its end keeps falling (its first push may lead away)."""
+        o = self.options
+        out: list[RodPush] = []
+        last = math.inf
+        while len(out) < budget and not self._done(rod, goal, self.pos_tol, self.ang_tol):
+            plans = plan_swings(rod, goal, push_point=o.rod_push_point, max_swing=o.rod_swing,
+                                pos_tol=self.pos_tol, ang_tol=self.ang_tol, offset=self.offsets.get(rod.id, 0.0))
+            made = None
+            for err, plan in plans:
+                if err >= last:
+                    break
+                made = self._swings(rod, plan)
+                if made is not None:
+                    last = err
+                    break
+            if not made:
+                break
+            out += made
+            rod = made[-1].pose
+        return out, rod
+
+    def _swings(self, rod: Body, plan: list[tuple[int, float]]) -> list[RodPush] | None:
+        """The pushes of ``plan`` made one after the other, or None if one collides."""
+        out = []
+        for end, swing in plan:
+            step = self._swing(rod, end, swing)
+            if step is None:
+                return None
+            out.append(step)
+            rod = step.pose
+        return out
+
+    def _swing(self, rod: Body, end: int, swing: float) -> RodPush | None:
+        """The push near ``end`` that turns ``rod`` by ``swing`` degrees (signed, the side
+        is the one that turns it that way), or None if it collides or turns too little."""
+        if abs(swing) < 1e-3:
+            return None
+        for side in (1, -1):
+            t0, t1 = push_primitive(rod, end, side, abs(swing), self.options)
+            after = simulate_push(rod, t0, t1, self.options.tip_radius, pivot_offset=self.offsets.get(rod.id, 0.0))
+            if (after.angle - rod.angle) * swing > 0:
+                if (_tip_free(self.space, t0, self.options.tip_radius, rod.id)
+                        and _rotation_sweep(self.space, rod, after, self.clearance, self.exempt)):
+                    return RodPush((t0, t1), after)
+                return None
+        return None
 
     def _finish_greedy(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body, bool]:
         _, near = self._macros(rod)
