@@ -143,6 +143,9 @@ def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
         res = yield from run_pattern(ctx, particle_before(at, target.diameter, reach, direction=turned,
                                                           options=opts))
     state, error = ("missed" if obj is not None else "unfilled"), None
+    if not res.found and obj is not None:
+        yield Msg("event", (f"slot {target.id}: the check scan did not find {obj}: {res.reason}",),
+                  {"level": "warn"})
     if res.found:
         t_scan = ctx.scan_ref if ctx.scan_ref is not None else t
         centre = np.asarray(res.centre, float) - ctx.offset(t_scan)

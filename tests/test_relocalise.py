@@ -96,4 +96,6 @@ def test_a_drift_jump_during_the_check_scans_does_not_falsify_the_verdict():
     again."""
     out, layout, events = _allpushed_jump(6, 900.0)
     assert any("scanned again" in t for t in events.texts), events.texts
+    # a slot whose assigned object the check scan did not find says why
+    assert any(t.startswith("slot ") and "the check scan did not find" in t for t in events.texts), events.texts
     assert not out.disagreements and len(out.truly_filled) >= len(layout.targets) - 1
