@@ -24,6 +24,7 @@ points of flattened arcs are refused with one line.
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import struct
@@ -47,6 +48,10 @@ from .importers import (
     axis_rectangle,
     positive_option,
 )
+
+# ezdxf logs each repair of a damaged file as a warning, which Python's last-resort handler
+# would print to stderr beside nanoasm's own line: the repairs are counted (a note) instead
+logging.getLogger("ezdxf").addHandler(logging.NullHandler())
 
 AREA_LAYER = "AREA"
 
@@ -146,6 +151,10 @@ def _read(path: str | os.PathLike, src: str, binary: bool) -> tuple[ezdxf.docume
         raise InputError(src, None, f"damaged DXF file: {exc}") from None
     except (ezdxf.DXFError, OSError, UnicodeError, ValueError, IndexError, struct.error) as exc:
         raise InputError(src, None, f"cannot read DXF: {exc}") from None
+    except (AttributeError, TypeError, KeyError, AssertionError) as exc:
+        # ezdxf's recover mode and audit trust some structures of a damaged file (a layout
+        # without its attributes): their failure is the file's
+        raise InputError(src, None, f"damaged DXF file ezdxf cannot repair ({type(exc).__name__}: {exc})") from None
     return doc, len(auditor.fixes) + len(auditor.errors)
 
 

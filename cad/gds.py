@@ -27,7 +27,12 @@ from __future__ import annotations
 
 import math
 import os
+import sys
+import tempfile
+import warnings
 from collections import Counter
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NoReturn
@@ -77,6 +82,12 @@ MAX_VERTICES = 1_000_000
 
 # GDSII record types and the byte size of each data type (0: no data ... 6: ASCII).
 _HEADER, _ENDLIB = 0x00, 0x04
+_STRNAME, _XY, _ENDEL, _SNAME, _COLROW = 0x06, 0x10, 0x11, 0x12, 0x13
+#: Element records (BOUNDARY, PATH, SREF, AREF, TEXT, NODE, BOX) and the records each must
+#: hold before its ENDEL: gdstk reads an element without them from memory it never filled
+#: (a BOUNDARY without XY segfaulted).
+_ELEMENT_NEEDS = {0x08: {_XY}, 0x09: {_XY}, 0x0A: {_XY, _SNAME}, 0x0B: {_XY, _SNAME, _COLROW},
+                  0x0C: {_XY}, 0x15: {_XY}, 0x2D: {_XY}}
 _DATA_SIZE = {0: 0, 1: 2, 2: 2, 3: 4, 4: 4, 5: 8, 6: 1}
 
 
@@ -109,9 +120,11 @@ def import_gds(path: str | os.PathLike, *, cell: str | None = None,
     size = area_option(area) if area is not None else None
     cell = name_option("cell", cell) if cell is not None else None
     _check_records(read_bytes(path), src)
-    top = _top_cell(_read(path, src), cell, src)
+    lib, skipped = _read(path, src)
+    top = _top_cell(lib, cell, src)
     tally = _Hierarchy(src, set(roles.values())).tally(top)
     builder = LayoutBuilder(src, Path(path).stem)
+    builder.notes.extend(f"{src}: gdstk: {message} ({n} time(s))" for message, n in sorted(skipped.items()))
     origin, size = _working_area(top, roles["area"], size, builder)
     _particles(top, roles["particle"], origin, builder)
     _rods(top, roles["rod"], origin, builder)
@@ -142,6 +155,7 @@ def _check_records(raw: bytes, src: str) -> None:
     if raw[:4] != b"\x00\x06\x00\x02":
         raise InputError(src, None, "not a GDSII file (it does not start with a HEADER record)")
     pos = 0
+    element: tuple[int, set[int]] | None = None         # (its first byte, records still needed)
     while pos + 4 <= len(raw):
         length, rtype, dtype = int.from_bytes(raw[pos:pos + 2], "big"), raw[pos + 2], raw[pos + 3]
         size = _DATA_SIZE.get(dtype)
@@ -152,18 +166,77 @@ def _check_records(raw: bytes, src: str) -> None:
             break
         if rtype == _ENDLIB:
             return
+        if rtype in _ELEMENT_NEEDS:
+            if element is not None:
+                raise InputError(src, None, f"corrupt GDSII file (the element at byte {element[0]} has no "
+                                            f"ENDEL before the next at byte {pos})")
+            element = (pos, set(_ELEMENT_NEEDS[rtype]))
+        elif rtype == _ENDEL:
+            if element is None or element[1] or length != 4:
+                where = f"the element at byte {element[0]}" if element else "nothing"
+                raise InputError(src, None, f"corrupt GDSII file (the ENDEL at byte {pos} ends {where}"
+                                            + (f", which lacks its {_names_of(element[1])}" if element and element[1]
+                                               else "") + ")")
+            element = None
+        elif element is not None:
+            element[1].discard(rtype)
+        if rtype in (_STRNAME, _SNAME) and not _is_text(raw[pos + 4:pos + length]):
+            raise InputError(src, None, f"corrupt GDSII file (the cell name at byte {pos} is not UTF-8 text)")
         pos += length
     raise InputError(src, None, "truncated GDSII file (it ends before the ENDLIB record)")
 
 
-def _read(path: str | os.PathLike, src: str) -> gdstk.Library:
+def _is_text(data: bytes) -> bool:
+    """gdstk makes a cell name a Python string, and fails on what is not UTF-8."""
     try:
-        unit, precision = gdstk.gds_units(str(path))
-        if not (math.isfinite(unit) and unit > 0 and math.isfinite(precision) and precision > 0):
-            raise InputError(src, None, f"invalid library units ({unit!r} m, precision {precision!r} m)")
-        return gdstk.read_gds(str(path), unit=1e-9)
+        data.rstrip(b"\0").decode("utf-8")
+    except UnicodeDecodeError:
+        return False
+    return True
+
+
+def _names_of(records: set[int]) -> str:
+    names = {_XY: "XY", _SNAME: "SNAME", _COLROW: "COLROW"}
+    return " and ".join(names[r] for r in sorted(records)) + " record"
+
+
+def _read(path: str | os.PathLike, src: str) -> tuple[gdstk.Library, Counter]:
+    """The library, and what gdstk warned of while reading it (records it skipped,
+    references to missing cells), counted for notes: never printed beside nanoasm's own
+    lines."""
+    try:
+        with warnings.catch_warnings(record=True) as skipped, _c_stderr() as said:
+            warnings.simplefilter("always")
+            unit, precision = gdstk.gds_units(str(path))
+            if not (math.isfinite(unit) and unit > 0 and math.isfinite(precision) and precision > 0):
+                raise InputError(src, None, f"invalid library units ({unit!r} m, precision {precision!r} m)")
+            lib = gdstk.read_gds(str(path), unit=1e-9)
     except (OSError, RuntimeError, ValueError) as exc:
         raise InputError(src, None, f"cannot read GDSII ({exc})") from None
+    # gdstk tells twice: a Python warning, and a line of its own C code on stderr
+    told = [str(w.message).rstrip(".") for w in skipped]
+    told += [line.removeprefix("[GDSTK]").strip().rstrip(".") for line in said if line.startswith("[GDSTK]")]
+    return lib, Counter(told)
+
+
+@contextmanager
+def _c_stderr() -> Iterator[list[str]]:
+    """What C code writes to the process's stderr (file descriptor 2) meanwhile, as lines
+    (filled on the way out) instead of on the user's terminal."""
+    lines: list[str] = []
+    sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 2)
+            try:
+                yield lines
+            finally:
+                os.dup2(saved, 2)
+                tmp.seek(0)
+                lines.extend(tmp.read(1 << 16).decode("utf-8", "replace").splitlines())
+    finally:
+        os.close(saved)
 
 
 def _top_cell(lib: gdstk.Library, name: str | None, src: str) -> gdstk.Cell:

@@ -179,9 +179,19 @@ def check_placement(noun: str, tables: Sequence[Table], bodies: Sequence[Body], 
         tables[i].fail(None, f"{noun} {bodies[i].id!r} overlaps {region_tables[k].path}")
 
 
+#: Largest magnitude of a polygon vertex, nm (1 m, a thousand times any scanner's range):
+#: beyond it a polygon's area and validity overflow.
+MAX_COORDINATE = 1e9
+
+
 def polygon_from_table(t: Table, name: str = "polygon") -> tuple[tuple[Point, ...], shapely.Polygon]:
     """A simple polygon with positive area; a closing repeat of the first vertex is allowed."""
     pts = t.points(name, min_len=3)
+    far = next((i for i, p in enumerate(pts, start=1) if max(abs(p[0]), abs(p[1])) > MAX_COORDINATE), None)
+    if far is not None:     # its area and validity would overflow (shapely warns, then fails)
+        x, y = pts[far - 1]
+        t.fail(f"{name}[{far}]", f"vertex ({x:g}, {y:g}) lies outside the area: beyond ±{MAX_COORDINATE:g} nm "
+                                 f"(1 m), where no area reaches")
     ring = list(pts[:-1]) if len(pts) > 3 and pts[0] == pts[-1] else list(pts)
     if len(ring) < 3:
         t.fail(name, "needs at least 3 distinct vertices")

@@ -25,6 +25,7 @@ except ImportError:  # pragma: no cover - older typer on click
 
 from . import __version__
 from .errors import InputError, NanoasmError
+from .listing import first
 
 app = typer.Typer(
     name="nanoasm",
@@ -362,21 +363,13 @@ def plan_cmd(
               f"{sum(stats.particle_turns) / len(stats.particle_turns):.2f} turns per object")
     if stats.rod_pushes:
         print(f"  rods: {sum(stats.rod_pushes) / len(stats.rod_pushes):.1f} pushes per rod")
-    shown, more = _first(plan.unfilled)
+    shown, more = first(plan.unfilled)
     for u in shown:
         print(f"  unfilled {u.target}: {u.reason}")
     if more:
         print(f"  … and {more} more unfilled (see {output})")
 
 
-#: Slots a summary lists one by one (unfilled, missed) before it only counts the rest.
-LISTED = 10
-
-
-def _first(items) -> tuple[list, int]:
-    """The first ``LISTED`` of ``items`` and how many more there are."""
-    items = list(items)
-    return items[:LISTED], max(len(items) - LISTED, 0)
 
 
 def _with_progress(label: str, work):
@@ -563,7 +556,7 @@ def run_cmd(
           f"({states['missed']} missed, {states['unfilled']} unfilled), "
           f"{rep.counts.pushes} push(es), {rep.counts.failed_pushes} failed; "
           f"{rep.instrument_time.total / 60:.1f} min")
-    shown, more = _first(v for v in rep.slots if v.state != "filled")
+    shown, more = first(v for v in rep.slots if v.state != "filled")
     for v in shown:
         print(f"  {v.state} {v.target}" + ("" if v.error is None else f": {v.error:.1f} nm off"))
     if more:
@@ -598,7 +591,7 @@ def _print_summary(layout, outcome) -> None:
     w = rep.wall_time
     table.add_row("wall time", f"{w.total:.1f} s (identify {w.identify:.1f}, plan {w.plan:.1f}, execute {w.execute:.1f})")
     reasons = {u.target: u.reason for u in rep.unfilled}
-    shown, more = _first(v for v in rep.slots if v.state != "filled")
+    shown, more = first(v for v in rep.slots if v.state != "filled")
     for v in shown:
         seen = "nothing found there" if v.error is None else f"{v.error:.1f} nm off"
         why = reasons.get(v.target, f"{v.object}: {seen}" if v.object else seen)
@@ -613,7 +606,8 @@ def _print_summary(layout, outcome) -> None:
 @app.command("sweep")
 def sweep_cmd(
     families: Annotated[str, typer.Option(help="Scene families, comma-separated: tiny, sparse, dense, rods, "
-                                               "mixed, device, allpushed, rodgap, wide, or all.")] = "sparse,dense,rods,mixed",
+                                               "mixed, device, allpushed, rodgap, wide, or all; "
+                                               "scaleN: N particles at a constant density.")] = "sparse,dense,rods,mixed",
     seeds: Annotated[str, typer.Option(help="Seeds: numbers and ranges, e.g. 1-5 or 1,4,9.")] = "1-3",
     strategies: Annotated[str, typer.Option(help="open-loop, local-scan, kalman, full, anchor "
                                                  "(comma-separated), or all.")] = "full",
@@ -631,7 +625,6 @@ def sweep_cmd(
     """Dry-run generated scene families over seeds, strategies and knobs in parallel; one table."""
     from nanoasm import sweep as sw
     from nanoasm.executor.strategy import STRATEGIES
-    from nanoasm.world.families import FAMILIES
 
     def parsed(option: str, fn, *args, **kwargs):
         try:
@@ -639,7 +632,7 @@ def sweep_cmd(
         except ValueError as exc:
             raise cx.BadParameter(str(exc), param_hint=f"'{option}'") from None
 
-    fams = parsed("--families", sw.parse_names, families, tuple(FAMILIES), "family")
+    fams = parsed("--families", sw.parse_families, families)
     strats = parsed("--strategies", sw.parse_names, strategies, STRATEGIES, "strategy")
     seed_list = parsed("--seeds", sw.parse_seeds, seeds)
     drifts = parsed("--drift", sw.parse_numbers, drift, "drift speeds")

@@ -23,6 +23,7 @@ from nanoasm.executor.documents import (CHANNELS, CHECKPOINT, DRIFT, ENVIRONMENT
                                         RESULT, STOP, CheckpointDoc, DocumentError, DriftDoc, PushDoc, StopDoc,
                                         body_from_stored)
 from nanoasm.executor.ledger import ACTIVITIES
+from nanoasm.listing import LISTED, first
 from nanoasm.schema import Table
 
 #: The dry-run harness's channel of the simulated truth (:mod:`nanoasm.dryrun`).
@@ -264,7 +265,8 @@ def print_review(rev: Review, console=None) -> None:
         table.add_row("the run's verdict", ", ".join(f"{states.get(k, 0)} {k}" for k in ("filled", "missed",
                                                                                         "unfilled"))
                       + " (its check scans of every slot)")
-    for s in rev.slots:
+    slots, more = first(rev.slots)
+    for s in slots:
         err = "no pose" if s.error is None else f"{s.error:.1f} nm"
         row = f"{'filled' if s.filled else 'missed'} by {s.object}: {err} off ({rev.source})"
         v = mine.get(s.target)
@@ -273,8 +275,15 @@ def print_review(rev: Review, console=None) -> None:
             differs = rev.source == "simulated truth" and (v.state == "filled") != s.filled
             row += f"; the run said {said}" + (" [bold red](differs)[/]" if differs else "")
         table.add_row(f"slot {s.target}", row)
-    for target, reason in rev.unfilled:
+    if more:
+        filled = sum(s.filled for s in rev.slots[LISTED:])
+        table.add_row("…", f"and {more} more slot(s): {filled} filled, {more - filled} missed "
+                           f"(the log holds every one)")
+    unfilled, more = first(rev.unfilled)
+    for target, reason in unfilled:
         table.add_row(f"unfilled {target}", reason)
+    if more:
+        table.add_row("…", f"and {more} more unfilled (the log holds every one)")
     causes = Counter(c for _, c in rev.failures)
     table.add_row("pushes (failed)", f"{rev.pushes} ({rev.failed_pushes})")
     if causes:

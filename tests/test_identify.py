@@ -263,10 +263,12 @@ def test_pixel_size_option_and_frame_origin():
     p = Body("p", "particle", (700.0, 300.0), 90.0)
     img = render_scan(make_surface([p], [], (1000.0, 1000.0), rng=rng), 5.0, rng=rng)
     moved = HeightImage(img.height, 5.0, (1000.0, -500.0))
+    # the environment's (0, 0) is the image's lower-left corner, whatever its origin:
+    # its objects lie in its area (issue 15: they lay at the origin's offset, outside it)
     o = identify(moved).objects[0]
-    assert o.at == pytest.approx((1700.0, -200.0), abs=1.0)
+    assert o.at == pytest.approx((700.0, 300.0), abs=1.0)
     o = identify(moved, pixel_size=10.0).objects[0]                 # everything doubles
-    assert o.at == pytest.approx((1000.0 + 1400.0, -500.0 + 600.0), abs=2.0)
+    assert o.at == pytest.approx((1400.0, 600.0), abs=2.0)
     assert identify(moved).area == (1000.0, 1000.0)
 
 

@@ -12,6 +12,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from nanoasm.errors import InputError
+from nanoasm.world.limits import MIN_JUMP_EVERY
 from nanoasm.schema import Table
 from nanoasm.param import ParamError
 from nanoasm.world.params import (
@@ -150,6 +151,8 @@ def _changed_value(f: dataclasses.Field, frac: float):
         return 8 + round(frac * 16)
     if isinstance(d, tuple):
         return tuple(v * (0.5 + 0.4 * frac) for v in d)
+    if f.name == "jump_every":          # 0 or at least MIN_JUMP_EVERY
+        return MIN_JUMP_EVERY * (1 + frac)
     if d == 0:
         return 0.5 * frac * (m["hi"] if m["hi"] is not None else 1.0)
     return d * (0.5 + 0.4 * frac)
@@ -161,6 +164,8 @@ def world_params(draw):
     for name, cls in groups():
         changes = {}
         for f in dataclasses.fields(cls):
+            if f.name == "travel_speed":        # not read from a scene (nothing travels at it)
+                continue
             if draw(st.booleans()):
                 changes[f.name] = _changed_value(f, draw(st.floats(0, 1)))
         w = dataclasses.replace(w, **{name: cls(**changes)})

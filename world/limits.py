@@ -64,3 +64,52 @@ MIN_PUSH_SPEED = 1.0
 #: MAX_PIXELS (4096 a side); it must also fit the scanner's XY range (90 µm by default),
 #: which ``dry-run`` and ``run`` check against the scene's or the instrument file's.
 MAX_LAYOUT_SIDE = 40_960.0
+
+# -- a scene's instrument and sample at extremes ------------------------------------------
+# Beyond these the simulated instrument overflows, allocates without bound or loops for
+# ever (a tip of 1e-300 nm, a lever gain of 1e308, a line of 1e308 s, jumps every 1e-9 s);
+# each is far outside any real AFM. ``scene check`` refuses a value beyond one, naming the
+# key (world/params.py declares them on the keys).
+
+#: Tip apex radius of a scene, nm (``[tip] radius``): 1 nm (the sharpest tips) to 1 µm
+#: (a blunt tip pushes nothing of tens of nm; colloidal probes do not push).
+MIN_TIP_RADIUS = 1.0
+MAX_SCENE_TIP_RADIUS = 1000.0
+#: Normal signal gain of the lever, nm/V (``[cantilever] K_n``; the seed's 89).
+MIN_LEVER_GAIN = 1.0
+MAX_LEVER_GAIN = 10_000.0
+#: Lever length, nm (``[cantilever] length``): 10 µm to 1 mm.
+MIN_LEVER_LENGTH = 10_000.0
+MAX_LEVER_LENGTH = 1e6
+#: (The scanner's slew limit, ``[scanner] max_speed``, is bounded by MIN_SCANNER_SPEED and
+#: MAX_SCANNER_SPEED of :mod:`nanoasm.instrument.protocol`, as its range and sample rate.)
+#: Time of one full-scan line, s (``[timing] full_scan_line``): 10 ms to 100 s.
+MIN_SCAN_LINE_TIME = 0.01
+MAX_SCAN_LINE_TIME = 100.0
+#: Time of one local-scan sample, s (``[timing] scan_line_sample``; the default 1 ms):
+#: 10 µs to 0.1 s. At 1 s a sample, each reference scan outlasts the drift it measures
+#: and a dry-run of one slot had not ended after 5 minutes.
+MIN_SAMPLE_TIME = 1e-5
+MAX_SAMPLE_TIME = 0.1
+#: Longest pause of the instrument, s (``[timing] scan_line_overhead``, ``mode_switch``;
+#: ``[drift_change] jump_duration``): 10 minutes.
+MAX_PAUSE = 600.0
+#: Shortest period of repeated drift jumps, s (``[drift_change] jump_every``, unless 0):
+#: two knocks a second are vibration, not drift (every jump of a run is drawn and summed).
+MIN_JUMP_EVERY = 0.5
+#: Most repeated jumps under way at once: ``jump_duration`` is at most this many
+#: ``jump_every`` (each sample of the drift sums the steps under way).
+MAX_OVERLAPPING_JUMPS = 10
+#: Largest gap at which the van der Waals error acts, nm (``[vdw] range``), and its
+#: largest amplitude (``[vdw] amplitude``).
+MAX_VDW_RANGE = 1000.0
+MAX_VDW_AMPLITUDE = 100.0
+#: Substrate roughness, nm RMS (``[sim] roughness_rms``), and its correlation length, nm
+#: (``[sim] roughness_length``): the roughness is a grid of one node per length over the
+#: scene's area and a margin of 20 lengths, at most MAX_PIXELS nodes.
+MAX_ROUGHNESS = 10.0
+MIN_ROUGHNESS_LENGTH = 1.0
+MAX_ROUGHNESS_LENGTH = 10_000.0
+#: Time XY must rest to end a move, s (``[sim] stop_time``): 1 ms to 10 s.
+MIN_STOP_TIME = 0.001
+MAX_STOP_TIME = 10.0

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 from nanoasm.errors import InputError
 from nanoasm.instrument import InstrumentConfig
+from nanoasm.instrument.protocol import MAX_SCANNER_SPEED
 from nanoasm.param import ParamError, param, validate
 from nanoasm.schema import Table
 
@@ -28,7 +29,27 @@ from .limits import (
     MAX_DRIFT_RANDOM_WALK,
     MAX_DRIFT_SPEED,
     MAX_HEIGHT_NOISE,
+    MAX_LEVER_GAIN,
+    MAX_LEVER_LENGTH,
+    MAX_OVERLAPPING_JUMPS,
+    MAX_PAUSE,
+    MAX_ROUGHNESS,
+    MAX_ROUGHNESS_LENGTH,
+    MAX_SAMPLE_TIME,
+    MAX_SCAN_LINE_TIME,
+    MAX_SCENE_TIP_RADIUS,
+    MAX_STOP_TIME,
+    MAX_VDW_AMPLITUDE,
+    MAX_VDW_RANGE,
+    MIN_JUMP_EVERY,
+    MIN_LEVER_GAIN,
+    MIN_LEVER_LENGTH,
     MIN_PUSH_SPEED,
+    MIN_ROUGHNESS_LENGTH,
+    MIN_SAMPLE_TIME,
+    MIN_SCAN_LINE_TIME,
+    MIN_STOP_TIME,
+    MIN_TIP_RADIUS,
 )
 from .param_spec import from_table, markdown_rows, to_table
 
@@ -38,7 +59,7 @@ class TipParams:
     """The tip apex."""
 
     radius: float = param(10.0, "nm", "apex radius", source="seed 3.4.1: apex diameter several nm "
-                          "to tens of nm", positive=True)
+                          "to tens of nm", positive=True, lo=MIN_TIP_RADIUS, hi=MAX_SCENE_TIP_RADIUS)
     half_angle: float = param(20.0, "deg", "open half angle γ of the apex; θ = θx + γ (eq. 4.1)",
                               source="not given in the seed; sharpened Si3N4 tips are 15-35°",
                               positive=True, hi=80.0)
@@ -53,7 +74,7 @@ class CantileverParams:
 
     k: float = param(0.12, "N/m", "normal spring constant", source="seed 3.4.2", positive=True)
     K_n: float = param(89.0, "nm/V", "normal signal gain δz = K_n S_n", source="seed 3.4.2, eq. 3.13",
-                       positive=True)
+                       positive=True, lo=MIN_LEVER_GAIN, hi=MAX_LEVER_GAIN)
     C1: float = param(1.3, "nm/V", "lateral tip displacement per volt of S̄l, δy = C1 S̄l",
                       source="seed 3.6.3; K_n h/l = 1.34", nonnegative=True)
     C2: float = param(23.0, "nm/V", "tip displacement along the lever per volt of S̄n, δx = C2 S̄n",
@@ -62,7 +83,8 @@ class CantileverParams:
                                 source="seed 3.4.3", positive=True)
     alpha: float = param(0.18, "-", "normal-to-lateral cross-talk α, eq. 3.28", source="seed 3.5, "
                          "Fig. 3.17", lo=-1.0, hi=1.0)
-    length: float = param(200000.0, "nm", "lever length l", source="seed 3.4.2: 200 µm", positive=True)
+    length: float = param(200000.0, "nm", "lever length l", source="seed 3.4.2: 200 µm", positive=True,
+                          lo=MIN_LEVER_LENGTH, hi=MAX_LEVER_LENGTH)
     tip_height: float = param(3000.0, "nm", "tip height h, lever thickness included",
                               source="seed 3.4.2: 3 µm", positive=True)
     signal_limit: float = param(10.0, "V", "photodiode output saturates at ±signal_limit",
@@ -134,9 +156,10 @@ class VdwParams:
     """Random lateral error of objects that end close to others (seed 3.6.1)."""
 
     range: float = param(20.0, "nm", "gap to another object below which the error acts",
-                         source="seed 3.6.1 gives no number; 20 nm", nonnegative=True)
+                         source="seed 3.6.1 gives no number; 20 nm", nonnegative=True, hi=MAX_VDW_RANGE)
     amplitude: float = param(5.0, "nm", "standard deviation of the error per axis",
-                             source="seed 3.6.1 'a small position error'; 5 nm", nonnegative=True)
+                             source="seed 3.6.1 'a small position error'; 5 nm", nonnegative=True,
+                             hi=MAX_VDW_AMPLITUDE)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -148,18 +171,21 @@ class TimingParams:
 
     full_scan_line: float = param(1.0, "s", "one full-scan line, trace and retrace (1 Hz)",
                                   source="seed 9.2: several minutes per image (512 lines: 8.5 min)",
-                                  positive=True)
+                                  positive=True, lo=MIN_SCAN_LINE_TIME, hi=MAX_SCAN_LINE_TIME)
     scan_line_sample: float = param(0.001, "s", "one sample of a local scan line (tapping mode)",
                                     source="same tip speed as a 1 Hz, 512-pixel full scan",
-                                    positive=True)
+                                    positive=True, lo=MIN_SAMPLE_TIME, hi=MAX_SAMPLE_TIME)
     scan_line_overhead: float = param(0.2, "s", "settling before each local scan line",
-                                      source="not in the seed", nonnegative=True)
+                                      source="not in the seed", nonnegative=True, hi=MAX_PAUSE)
     mode_switch: float = param(2.0, "s", "switch between tapping (scan) and contact (push) mode, "
                                "approach or retract", source="seed 5.4 describes the switch; 2 s",
-                               nonnegative=True)
+                               nonnegative=True, hi=MAX_PAUSE)
     push_speed: float = param(200.0, "nm/s", "tip speed while pushing: a dry-run pushes at it",
-                              source="seed 4.2.2: >100 particles in half an hour", lo=MIN_PUSH_SPEED)
-    travel_speed: float = param(2000.0, "nm/s", "tip speed while lifted", source="not in the seed",
+                              source="seed 4.2.2: >100 particles in half an hour", lo=MIN_PUSH_SPEED,
+                              hi=MAX_SCANNER_SPEED)
+    travel_speed: float = param(2000.0, "nm/s", "not read from a scene (refused there): a lifted tip "
+                                "travels at the scanner's slew limit, `[scanner] max_speed`, on the "
+                                "simulated instrument as on a real one", source="not in the seed",
                                 positive=True)
 
     def __post_init__(self) -> None:
@@ -196,10 +222,19 @@ class DriftChangeParams:
                            "instrument's start)", nonnegative=True)
     jump_every: float = param(0.0, "s", "period of repeated jumps (steps may overlap); 0: only once",
                               nonnegative=True)
-    jump_duration: float = param(1.0, "s", "a jump is a smooth (C1) step over this time", positive=True)
+    jump_duration: float = param(1.0, "s", "a jump is a smooth (C1) step over this time", positive=True,
+                                 hi=MAX_PAUSE)
 
     def __post_init__(self) -> None:
         validate(self)
+        if 0 < self.jump_every < MIN_JUMP_EVERY:
+            raise ParamError("jump_every", f"must be 0 (one jump) or at least {MIN_JUMP_EVERY:g} s, "
+                                           f"got {self.jump_every!r}")
+        if self.jump_every > 0 and self.jump_duration > MAX_OVERLAPPING_JUMPS * self.jump_every:
+            raise ParamError("jump_duration", f"must be at most {MAX_OVERLAPPING_JUMPS} x jump_every "
+                                              f"({MAX_OVERLAPPING_JUMPS * self.jump_every:g} s: at most "
+                                              f"{MAX_OVERLAPPING_JUMPS} jumps under way at once), "
+                                              f"got {self.jump_duration:g}")
 
 
 @dataclass(frozen=True)
@@ -261,15 +296,16 @@ class SimParams:
     """How the simulated instrument and sample behave beyond the seed's equations."""
 
     roughness_rms: float = param(0.2, "nm", "substrate roughness", source="a smooth glass slide",
-                                 nonnegative=True)
-    roughness_length: float = param(50.0, "nm", "correlation length of the roughness", positive=True)
+                                 nonnegative=True, hi=MAX_ROUGHNESS)
+    roughness_length: float = param(50.0, "nm", "correlation length of the roughness", positive=True,
+                                    lo=MIN_ROUGHNESS_LENGTH, hi=MAX_ROUGHNESS_LENGTH)
     line_offset_prob: float = param(0.02, "-", "probability of a whole-line height offset in a full scan",
                                     nonnegative=True, hi=1.0)
     line_offset_rms: float = param(0.5, "nm", "rms of such a line offset", nonnegative=True)
     piezo_tau: float = param(0.003, "s", "time constant of the piezo amplifier's low-pass between "
                              "DAC and scanner", positive=True)
     stop_time: float = param(0.05, "s", "XY at rest this long ends a move (creep counts moves)",
-                             positive=True)
+                             positive=True, lo=MIN_STOP_TIME, hi=MAX_STOP_TIME)
     capture_angle: float = param(45.0, "deg", "half-angle of the cone about the tip's motion within "
                                  "which a particle is carried", positive=True, hi=90.0)
     heading_length: float = param(30.0, "nm", "length of tip path over which its direction of "
@@ -338,6 +374,9 @@ class WorldParams:
             if name not in _GROUPS:
                 raise InputError(t.source, t.path or name,
                                  f"unknown table (world tables: {', '.join(TABLES)})")
+            if name == "timing" and "travel_speed" in t:
+                t.fail("travel_speed", "has no effect: a lifted tip travels at the scanner's slew limit, "
+                                       "so set [scanner] max_speed instead")
             kwargs[name] = from_table(_GROUPS[name], t)
         return cls(**kwargs)
 

@@ -9,6 +9,7 @@ value types. Every rejection is an
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 
@@ -25,6 +26,7 @@ from nanoasm.bodies import (
 from nanoasm.fileio import Document, read_document
 from nanoasm.schema import Point, Table, check_format
 
+from .limits import MAX_PIXELS
 from .params import TABLES, DriftParams, NoiseParams, WorldParams
 
 FORMAT = "nanoasm.scene/1"
@@ -107,9 +109,24 @@ def scene_from_dict(data: dict, source: str | None = None) -> Scene:
         t.fail("area", f"{area[0]:g} x {area[1]:g} nm exceeds the scanner's XY range {xy[0]:g} x "
                        f"{xy[1]:g} nm ([scanner] xy_range)")
 
+    _check_roughness(t, params, area)
     check_placement("object", otables, objects, area, btables, polys)
 
     return Scene(area, tuple(objects), tuple(obstacles), params, seed)
+
+
+def _check_roughness(t: Table, params: WorldParams, area: Point) -> None:
+    """The simulated roughness is one grid node per correlation length over the area and a
+    margin of 20 lengths: at most MAX_PIXELS nodes."""
+    sim = params.sim
+    if sim.roughness_rms == 0:
+        return
+    nodes = [math.ceil(side / sim.roughness_length) + 44 for side in area]
+    if nodes[0] * nodes[1] > MAX_PIXELS:
+        least = max(area) / (math.isqrt(MAX_PIXELS) - 44)
+        t.fail("sim.roughness_length", f"must be at least {least:.3g} nm over a {area[0]:g} x {area[1]:g} nm "
+                                       f"area, got {sim.roughness_length:g} (the roughness grid would have "
+                                       f"{nodes[0]} x {nodes[1]} nodes, at most MAX_PIXELS {MAX_PIXELS})")
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

@@ -43,6 +43,17 @@ MAX_SCANNER_RANGE = 1e6
 #: is 44 million samples (1 GB).
 MIN_SAMPLE_RATE = 100.0
 MAX_SAMPLE_RATE = 100_000.0
+#: Slowest and fastest slew limit, nm/s (``max_speed``; the default 50 µm/s): 10 nm/s to
+#: 1 mm/s. A slower one makes a travel across the range take days and as many DAC samples
+#: (at 1e-300 nm/s, more than memory holds); a faster one is beyond any piezo scanner.
+#: The fastest push of a scene (``[timing] push_speed``) is the same.
+MIN_SCANNER_SPEED = 10.0
+MAX_SCANNER_SPEED = 1e6
+#: Smallest and largest scanner calibration, nm per DAC volt (``nm_per_volt``, each axis;
+#: the default 4500 XY, 250 Z): 0.1 nm/V to 1 mm/V. Beyond them converting a position
+#: to volts underflows or overflows (1e-320 nm/V made every position infinite volts).
+MIN_NM_PER_VOLT = 0.1
+MAX_NM_PER_VOLT = 1e6
 
 
 @dataclass(frozen=True)
@@ -60,7 +71,7 @@ class InstrumentConfig:
                            hi=MAX_SCANNER_RANGE)
     nm_per_volt: tuple[float, float, float] = param(
         (4500.0, 4500.0, 250.0), "nm/V", "scanner calibration per axis (XYZ): travel per DAC volt",
-        source="range over the ±10 V span", positive=True)
+        source="range over the ±10 V span", positive=True, lo=MIN_NM_PER_VOLT, hi=MAX_NM_PER_VOLT)
     dac_bits: int = param(16, "bits", "DAC resolution; 1.37 nm per code in XY at the defaults",
                           source="typical DAQ card; the seed does not give it", lo=8, hi=32)
     volt_range: tuple[float, float] = param(
@@ -69,7 +80,8 @@ class InstrumentConfig:
                                source="1 kHz haptic/real-time loop; not in the seed", positive=True,
                                lo=MIN_SAMPLE_RATE, hi=MAX_SAMPLE_RATE)
     max_speed: float = param(50000.0, "nm/s", "slew limit, XY (Euclidean) and Z",
-                             source="realistic for a 90 µm piezo tube", positive=True)
+                             source="realistic for a 90 µm piezo tube", positive=True,
+                             lo=MIN_SCANNER_SPEED, hi=MAX_SCANNER_SPEED)
     max_accel: float = param(1.0e6, "nm/s²", "acceleration limit for trajectory shaping; not checked "
                              "per sample, where DAC quantisation alone exceeds it", positive=True)
     lift: float = param(300.0, "nm", "Z above the substrate for travel; clears objects up to ~150 nm",

@@ -9,8 +9,9 @@ image of a ball or a straight capsule (:mod:`.pieces`,
 objects that touch each other (aggregates), become obstacles: the outline of their
 pixels above the cut (holes filled), with their height.
 
-Coordinates are nm in the image's frame: ``HeightImage.origin`` is the lower-left
-corner of pixel (0, 0).
+Coordinates are nm in the environment's frame, whose (0, 0) is the image's lower-left
+corner (the corner of pixel (0, 0)) and whose area is the image's extent: a file's
+``origin`` (a scanner offset) moves nothing out of that area.
 """
 
 from __future__ import annotations
@@ -100,7 +101,8 @@ def identify(image: HeightImage, *, cut: float | None = None, min_area: float | 
     Returns
     -------
     Environment
-        ``area`` is the image's extent; ids are ``o1, o2, ...``.
+        ``area`` is the image's extent and (0, 0) its lower-left corner, whatever the
+        image's ``origin``: every object lies in the area. Ids are ``o1, o2, ...``.
 
     Raises
     ------
@@ -108,6 +110,7 @@ def identify(image: HeightImage, *, cut: float | None = None, min_area: float | 
         For an option out of range, an image with no finite height or with heights
         beyond :data:`~nanoasm.world.limits.MAX_HEIGHT`.
     """
+    image = replace(image, origin=(0.0, 0.0))
     return analyse(image, cut=cut, min_area=min_area, min_height=min_height, pixel_size=pixel_size,
                    tip_radius=tip_radius, tip_half_angle=tip_half_angle, rod_limit=rod_limit,
                    plane_order=plane_order, line_order=line_order).environment
