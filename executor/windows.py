@@ -45,6 +45,10 @@ class Window:
         object.__setattr__(self, "score", number("score", self.score, nonnegative=True))
 
 
+#: Images of more pixels than this are correlated in bands of rows (bounded memory).
+BAND_PIXELS = 1 << 22
+
+
 def choose_windows(image: HeightImage, size: float, *, avoid=None, count: int = 3,
                    min_separation: float | None = None, margin: float | None = None
                    ) -> tuple[Window, ...]:
@@ -97,12 +101,16 @@ def choose_windows(image: HeightImage, size: float, *, avoid=None, count: int = 
     gy = ndimage.gaussian_filter(image.height, 1.0, order=(1, 0)) / ps
     step = max(1, k // 8)
     weight = taper("hann", (k, k))                 # what survives a shift counts most
-    sums = [_window_sums(a * valid, weight, step) for a in (valid, gx, gy, gx * gx, gy * gy, gx * gy)]
+    def masked(a, b=None):      # rows r0:r1 of a (or a b) times valid, made band by band
+        return lambda r0, r1: (a[r0:r1] if b is None else a[r0:r1] * b[r0:r1]) * valid[r0:r1]
+
+    terms = (masked(valid), masked(gx), masked(gy), masked(gx, gx), masked(gy, gy), masked(gx, gy))
+    sums = [_window_sums(f, image.shape, weight, step) for f in terms]
     n, sx, sy, sxx, syy, sxy = sums
     nn = np.maximum(n, 1e-9)
     a, c, b = sxx - sx * sx / nn, syy - sy * sy / nn, sxy - sx * sy / nn
     score = np.maximum(0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b), 0.0)
-    unmasked = _window_sums(valid.astype(float), np.ones((k, k)), step)
+    unmasked = _window_sums(lambda r0, r1: valid[r0:r1].astype(float), image.shape, np.ones((k, k)), step)
     score[unmasked < (1 - MAX_MASKED) * k * k] = -1.0
     chosen: list[Window] = []
     for flat in np.argsort(score, axis=None)[::-1]:
@@ -131,8 +139,17 @@ def _near(image: HeightImage, geometry, margin: float) -> np.ndarray:
         geometry, x[None, :], y[:, None])
 
 
-def _window_sums(a: np.ndarray, weight: np.ndarray, step: int) -> np.ndarray:
-    """Sums of ``a`` times ``weight`` over the windows whose lower-left pixel lies on a
-    ``step`` grid."""
-    full = correlate(a, weight, mode="valid", method="fft")
-    return full[::step, ::step]
+def _window_sums(field, shape: tuple[int, int], weight: np.ndarray, step: int) -> np.ndarray:
+    """Sums of an image times ``weight`` over the windows whose lower-left pixel lies on a
+    ``step`` grid; ``field(r0, r1)`` gives the image's rows ``r0:r1`` (of ``shape``). An
+    image of more than :data:`BAND_PIXELS` pixels is made and correlated in bands of rows
+    (a whole 4096-pixel scan's products and transforms took gigabytes); only the grid's
+    rows are kept."""
+    k = weight.shape[0]
+    rows = shape[0] - k + 1                         # windows along y
+    band = max(step, BAND_PIXELS // shape[1] // step * step)
+    if shape[0] * shape[1] <= BAND_PIXELS or band >= rows:
+        return correlate(field(0, shape[0]), weight, mode="valid", method="fft")[::step, ::step].copy()
+    # bands start on the grid (band is a multiple of step), so each keeps its rows ::step
+    return np.vstack([correlate(field(r, min(r + band, rows) + k - 1), weight, mode="valid",
+                                method="fft")[::step, ::step] for r in range(0, rows, band)])

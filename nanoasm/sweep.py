@@ -36,7 +36,7 @@ from nanoasm.errors import InputError
 from nanoasm.executor.strategy import STRATEGIES, ExecOptions
 from nanoasm.fileio import dumps_json, write_atomic
 from nanoasm.planner.options import PlanOptions
-from nanoasm.world.families import DEFAULT_DRIFT, family
+from nanoasm.world.families import DEFAULT_DRIFT, FAMILIES, family
 
 #: Knobs a case may set: ExecOptions and PlanOptions fields (the strategy and the
 #: planner's seed are set by the case itself).
@@ -81,6 +81,17 @@ def parse_names(text: str, valid: Sequence[str], what: str) -> list[str]:
             raise ValueError(f"unknown {what} {n!r}; one of {', '.join(valid)} (or all)")
     if not names:
         raise ValueError(f"no {what} given")
+    return names
+
+
+def parse_families(text: str) -> list[str]:
+    """Scene families as a comma list: the named families (``all`` for every one) and
+    ``scaleN``, N objects at a constant density (:func:`~nanoasm.world.families.scale_family`)."""
+    names = list(FAMILIES) if text.strip() == "all" else [n.strip() for n in text.split(",") if n.strip()]
+    for n in names:
+        family(n)
+    if not names:
+        raise ValueError("no family given")
     return names
 
 

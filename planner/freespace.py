@@ -41,23 +41,35 @@ class FreeSpace:
         self._fixed_tree = shapely.STRtree(self._fixed) if len(fixed) else None
         self._fixed_rmax = float(self._fixed_r.max()) if len(fixed) else 0.0
         self.bodies: dict[str, Body] = dict(bodies)
-        self._dirty = True
+        self._dirty = True              # every core to make anew
+        self._moved = False             # some cores replaced: the tree to build anew
+        self._slot: dict[str, int] = {}
 
     # -- movable bodies ---------------------------------------------------------------
     def move(self, body: Body) -> None:
-        """Put ``body`` (by id) at its new pose."""
+        """Put ``body`` (by id) at its new pose: its core alone is made anew (the tree is
+        rebuilt at the next query, in one call), so a plan of many pushes among many
+        objects does not remake every object's geometry after each push."""
         self.bodies[body.id] = body
-        self._dirty = True
+        k = self._slot.get(body.id)
+        if self._dirty or k is None:
+            self._dirty = True
+            return
+        self._cores[k] = body.geometry()
+        self._radii[k] = body.radius
+        self._moved = True
 
     def _index(self) -> None:
-        if not self._dirty:
+        if self._dirty:
+            self._ids = list(self.bodies)
+            self._slot = {i: k for k, i in enumerate(self._ids)}
+            self._cores = np.array([self.bodies[i].geometry() for i in self._ids], dtype=object)
+            self._radii = np.array([self.bodies[i].radius for i in self._ids], dtype=float)
+        elif not self._moved:
             return
-        self._ids = list(self.bodies)
-        self._cores = np.array([self.bodies[i].geometry() for i in self._ids], dtype=object)
-        self._radii = np.array([self.bodies[i].radius for i in self._ids], dtype=float)
         self._tree = shapely.STRtree(self._cores) if self._ids else None
         self._rmax = float(self._radii.max()) if self._ids else 0.0
-        self._dirty = False
+        self._dirty = self._moved = False
 
     # -- queries ----------------------------------------------------------------------
     def inside(self, geom: shapely.Geometry, radius: float) -> bool:

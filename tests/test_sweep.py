@@ -67,6 +67,19 @@ def test_a_dask_cluster_gives_the_same_table(serial_rows):
     assert without_wall(rows) == without_wall(serial_rows)
 
 
+def test_the_scale_benchmark_runs_on_a_two_worker_dask_cluster_as_in_series():
+    """bench/bench_scale.py's dry-runs (the scaleN family) on a distributed.LocalCluster of
+    two worker processes, as README's recipe runs them: the same rows as in series."""
+    from distributed import LocalCluster
+
+    cases = sw.grid(sw.parse_families("scale10,scale20"), [1, 2], ["full"])
+    serial = sw.sweep(cases, workers=1)
+    assert all(r["error"] is None and r["slots"] in (3, 6) and r["pushes"] > 0 for r in serial)
+    with LocalCluster(n_workers=2, threads_per_worker=1, dashboard_address=None, processes=True) as cluster:
+        rows = sw.sweep(cases, scheduler=cluster.scheduler_address)
+    assert without_wall(rows) == without_wall(serial)
+
+
 def test_an_unreachable_scheduler_is_one_input_error():
     with pytest.raises(sw.InputError, match="--scheduler: cannot reach tcp://127.0.0.1:9"):
         sw.sweep(TINY[:1], scheduler="tcp://127.0.0.1:9")

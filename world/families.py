@@ -23,6 +23,10 @@ wide        16000     20-60 particles (the count drawn from  12 particles, a 4 x
                       the seed), none within 2 µm of a slot  300 nm pitch in the centre
 ==========  ========  =====================================  ================================
 
+``scaleN`` (:func:`scale_family`, N from 2 to 1000, not in :data:`FAMILIES`) is the scale
+benchmark's: N particles at a constant density (1000 in 40 x 40 µm) and ``round(0.3 N)``
+particle slots in a square grid spread over the area.
+
 Particles are 80-100 nm and particle slots 90 nm, rods 500-700 nm long and 60-80 nm
 thick and rod slots 600 x 70 nm (``device``: rods 1150-1300 x 80-100 nm; ``rodgap``:
 1200-1400 x 90-110 nm), so every object fits every slot of its kind within the default
@@ -145,12 +149,42 @@ FAMILIES: dict[str, Family] = {f.name: f for f in (
 )}
 
 
+#: ``scaleN``: square side (nm) per square root of the object count, so the density stays
+#: that of 1000 objects in 40 x 40 µm (the largest area a run full-scans, ``MAX_LAYOUT_SIDE``).
+SCALE_SIDE = 40_000.0 / math.sqrt(1000.0)
+#: ``scaleN``: slots per object.
+SCALE_SLOTS = 0.3
+#: ``scaleN``: the range of N.
+SCALE_RANGE = (2, 1000)
+
+
+def scale_family(n: int) -> Family:
+    """``scaleN``: ``n`` particles at a constant density (:data:`SCALE_SIDE`) and
+    ``round(0.3 n)`` particle slots in a square grid spread over the area, for scale
+    benchmarks. The border is the drift of a whole full scan at :data:`DEFAULT_DRIFT`
+    (10 nm pixels, 1 s lines: ``0.03 side``); enough particles are drawn that exactly ``n``
+    stay clear of it and of the slots."""
+    lo, hi = SCALE_RANGE
+    if not lo <= n <= hi:
+        raise ValueError(f"scene family scale{n}: N must be {lo}-{hi}")
+    side = round(SCALE_SIDE * math.sqrt(n))
+    border = round(DEFAULT_DRIFT * side / 10.0)
+    count = max(1, round(SCALE_SLOTS * n))
+    pitch = (side - 2.0 * border) / math.ceil(math.sqrt(count))
+    return Family(f"scale{n}", float(side), math.ceil(1.3 * n) + 5, fs.array(count, pitch), keep=(n, 0),
+                  border=float(border))
+
+
 def family(name: str) -> Family:
-    """The family called ``name``; ValueError listing the names otherwise."""
+    """The family called ``name`` (or ``scaleN``, :func:`scale_family`); ValueError listing
+    the names otherwise."""
     try:
         return FAMILIES[name]
     except KeyError:
-        raise ValueError(f"unknown scene family {name!r}; one of {', '.join(FAMILIES)}") from None
+        if name.startswith("scale") and name[5:].isdigit() and name[5:] == str(int(name[5:])):
+            return scale_family(int(name[5:]))
+        raise ValueError(f"unknown scene family {name!r}; one of {', '.join(FAMILIES)} "
+                         f"or scaleN (N = {SCALE_RANGE[0]}-{SCALE_RANGE[1]})") from None
 
 
 def _enough(objects: tuple[Body, ...], slots: tuple[Body, ...], spare: int) -> bool:
@@ -173,9 +207,14 @@ def _kept(objects: tuple[Body, ...], keep: tuple[int, int] | None) -> tuple[Body
     return None if any(want.values()) else tuple(out)
 
 
-def _clear_of(body: Body, others: tuple[Body, ...], clearance: float) -> bool:
-    g = body.geometry()
-    return all(shapely.distance(g, o.geometry()) >= body.radius + o.radius + clearance for o in others)
+def _clear_of(others: tuple[Body, ...], clearance: float):
+    """A test whether a body keeps ``clearance`` nm from every one of ``others``."""
+    geoms = np.array([o.geometry() for o in others], dtype=object)
+    radii = np.array([o.radius for o in others], float)
+
+    def clear(body: Body) -> bool:
+        return bool(np.all(shapely.distance(body.geometry(), geoms) >= body.radius + radii + clearance))
+    return clear
 
 
 def _sig(x: float) -> float:
@@ -228,8 +267,10 @@ def family_case(name: str, seed: int, drift: float | None = None) -> tuple[Scene
 
     inner = shapely.box(fam.border, fam.border, fam.side - fam.border, fam.side - fam.border)
 
+    of_slots, of_wires = _clear_of(slots, fam.clearance), _clear_of(wires, spec.gap)
+
     def clear(o: Body) -> bool:
-        return (_clear_of(o, slots, fam.clearance) and _clear_of(o, wires, spec.gap)
+        return (of_slots(o) and of_wires(o)
                 and (pads is None or shapely.distance(o.geometry(), pads) >= o.radius + spec.gap)
                 and (fam.border == 0.0 or inner.contains(o.geometry().buffer(o.radius))))
 

@@ -85,6 +85,18 @@ def grid(nx: int, ny: int, pitch: float) -> Slots:
     return slots
 
 
+def array(count: int, pitch: float) -> Slots:
+    """``count`` particle slots, the first of a square grid of ``pitch`` nm (as many columns
+    as rows, the last row partly filled) centred on the area's centre, numbered along x first."""
+    cols = math.ceil(math.sqrt(count))
+    rows = math.ceil(count / cols)
+
+    def slots(c: float) -> tuple[Body, ...]:
+        return tuple(_particle(k + 1, c + pitch * (k % cols - (cols - 1) / 2), c + pitch * (k // cols - (rows - 1) / 2))
+                     for k in range(count))
+    return slots
+
+
 #: ``allpushed``: nine particle slots in a 3 x 3 grid of 150 nm pitch.
 grid3 = grid(3, 3, 150.0)
 #: ``wide``: twelve particle slots in a 4 x 3 grid of 300 nm pitch (210 nm clear between

@@ -31,6 +31,8 @@ from nanoasm.schema import Point
 from .roughness import Roughness, make_roughness
 from .tipimage import Tip, ball_image, ball_reach, plateau_image, segment_distance, tip_reach
 
+#: Pixels of a full scan whose substrate is evaluated at once (memory for its coordinates).
+_BAND_PIXELS = 1 << 20
 #: Drift model: times (n,) in s -> scanner-versus-sample offsets (n, 2) in nm.
 DriftFn = Callable[[np.ndarray], np.ndarray]
 
@@ -201,10 +203,12 @@ def render_scan(surface: Surface, pixel_size: float, *, tip: Tip = Tip(),
     ys = wy + (np.arange(ny) + 0.5) * pixel_size + off[:, 1]
     dx = off[:, 0]
 
-    if surface.roughness is not None:
-        z = surface.roughness(xs[None, :] + dx[:, None], np.broadcast_to(ys[:, None], (ny, nx)))
-    else:
-        z = np.zeros((ny, nx))
+    z = np.zeros((ny, nx))
+    if surface.roughness is not None:       # in bands of rows: each point alone, bounded memory
+        band = max(1, _BAND_PIXELS // nx)
+        for r in range(0, ny, band):
+            rows = slice(r, r + band)
+            z[rows] = surface.roughness(xs[None, :] + dx[rows, None], np.broadcast_to(ys[rows, None], z[rows].shape))
     for (x0, y0, x1, y1), image in _features(surface, _floor(surface), tip):
         rows = np.nonzero((ys >= y0) & (ys <= y1))[0]
         if rows.size == 0:
@@ -240,6 +244,25 @@ def surface_heights(surface: Surface, x: np.ndarray, y: np.ndarray, *, tip: Tip 
         if near.size:
             z[near] = np.maximum(z[near], image(x[near], y[near]))
     return z
+
+
+def surface_near(surface: Surface, cores: tuple[np.ndarray, np.ndarray, np.ndarray], lo, hi, *,
+                 tip: Tip = Tip(), margin: float = 1.0) -> Surface:
+    """``surface`` with only the bodies whose image can reach the box ``lo``-``hi`` (nm):
+    what a scan line there sees, found in one array operation instead of a loop over every
+    body. ``cores``: the bodies' core end points ``(n, 2)``, ``(n, 2)`` and radii ``(n,)``
+    (a :class:`~nanoasm.world.sim.contacts.SimContacts`'s, in the order of
+    ``surface.bodies``). The boxes are those :func:`surface_heights` tests, grown by
+    ``margin`` nm for rounding, so its heights in the box are exactly the whole surface's."""
+    a, b, r = cores
+    if r.size == 0:
+        return surface
+    reach = ball_reach(r, _floor(surface), tip) + margin     # bounds() is the core grown by r
+    near = np.all((np.minimum(a, b) - reach[:, None] <= np.asarray(hi, float))
+                  & (np.maximum(a, b) + reach[:, None] >= np.asarray(lo, float)), axis=1)
+    bodies = surface.bodies
+    return Surface(surface.area, tuple(bodies[i] for i in np.flatnonzero(near)), surface.obstacles,
+                   surface.roughness)
 
 
 def render_line(surface: Surface, a: Point, b: Point, n: int, *, tip: Tip = Tip(),

@@ -41,7 +41,7 @@ import numpy as np
 from nanoasm.bodies import Body
 from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock, check_samples, ramp
 from nanoasm.world.params import WorldParams
-from nanoasm.world.render import make_surface, render_line, render_scan
+from nanoasm.world.render import make_surface, render_line, render_scan, surface_near
 from nanoasm.world.scene import Scene
 
 from .calibration import (
@@ -220,8 +220,11 @@ class SimulatedAFM:
         t = self._clock.now
         dx, dy = self._drift.offset(t)
         self._moves.jump(t, pa)          # whatever moved the DAC here, then on to a
-        heights = render_line(self._surface_now(), (pa[0] - dx, pa[1] - dy), (pb[0] - dx, pb[1] - dy),
-                              int(n), tip=self._world.tip, noise_rms=self.params.noise.height_rms,
+        sa, sb = (pa[0] - dx, pa[1] - dy), (pb[0] - dx, pb[1] - dy)
+        # the bodies near the line alone: one array test, not a loop over every body
+        near = surface_near(self._surface_now(), self._world.contacts.cores(), np.minimum(sa, sb),
+                            np.maximum(sa, sb), tip=self._world.tip)
+        heights = render_line(near, sa, sb, int(n), tip=self._world.tip, noise_rms=self.params.noise.height_rms,
                               rng=self._rng_scan)
         self._clock.scan_line(int(n))
         self._moves.jump(self._clock.now, pb)

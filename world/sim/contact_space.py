@@ -125,6 +125,20 @@ class ContactSpace:
             self._grid.setdefault(key, set()).add(i)
         self._cells[i] = new
 
+    def units_near(self, lo, hi) -> np.ndarray | None:
+        """Units whose grid cells meet the box ``lo``-``hi`` (a superset of those whose
+        footprint's box does), sorted; None when the box spans more cells than there are
+        units (a test of every unit is then cheaper)."""
+        c = self.cell
+        x0, y0 = math.floor(lo[0] / c), math.floor(lo[1] / c)
+        x1, y1 = math.floor(hi[0] / c), math.floor(hi[1] / c)
+        if (x1 - x0 + 1) * (y1 - y0 + 1) > len(self._bodies):
+            return None
+        found: set[int] = set()
+        for key in _cells((x0, y0, x1, y1)):
+            found |= self._grid.get(key, set())
+        return np.array(sorted(found), dtype=np.int64)
+
     def _neighbours(self, i: int, margin: float = 0.0) -> list[int]:
         found: set[int] = set()
         for key in _cells(self._cell_range(i, margin)):

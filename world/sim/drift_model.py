@@ -20,7 +20,10 @@ the walk's, so jumps never change the walk's draws.
 
 Creep: each recorded move of the scanner by a step ``s`` (at least ``min_step`` long)
 adds ``γ s log10(1 + (t - t_s) / τ)`` for ``t > t_s``: the piezo keeps extending along
-the step, logarithmically (seed 3.7 refers creep to its ref. [50]).
+the step, logarithmically (seed 3.7 refers creep to its ref. [50]). No move is ever
+forgotten; once there are thousands, the old ones are summed as one power series
+(:mod:`.creep_sum`, exact to float rounding), so a query costs the same late in a long
+run as early.
 
 Sign convention: a sample point at scene position ``p`` lies under the scanner-frame
 position ``p + offset(t)``, with ``offset = thermal - creep`` (creep carries the tip
@@ -34,6 +37,8 @@ import math
 import numpy as np
 
 from nanoasm.world.params import CreepParams, DriftChangeParams, DriftParams
+
+from .creep_sum import CreepSum
 
 _BLOCK = 4096  # grid steps per noise block
 _JUMP_BLOCK = 256  # jump directions per stream
@@ -74,6 +79,7 @@ class DriftModel:
         self._u = np.zeros((1, 2))  # random-walk velocity at grid nodes
         self._moves_t: list[float] = []
         self._moves_s: list[tuple[float, float]] = []
+        self._sum = CreepSum(creep.tau)             # their creep, summed fast
         self.change = DriftChangeParams() if change is None else change
         self._a = np.asarray(self.change.acceleration, float)
         self._dirs = np.zeros((0, 2))  # unit direction of each jump
@@ -193,21 +199,24 @@ class DriftModel:
             return False
         self._moves_t.append(float(t))
         self._moves_s.append((float(dx), float(dy)))
+        self._sum.add(float(t), (float(dx), float(dy)))
         return True
 
+    def set_moves(self, times, steps) -> None:
+        """Replace the recorded moves (a restored state): times (s) and steps (nm) in order."""
+        self._moves_t = [float(v) for v in times]
+        self._moves_s = [(float(a), float(b)) for a, b in steps]
+        self._sum = CreepSum(self.creep_params.tau)
+        for t, s in zip(self._moves_t, self._moves_s):
+            self._sum.add(t, s)
+
     def creep(self, t):
-        """Creep ``(dx, dy)`` in nm at time(s) ``t``: the sum over recorded moves."""
+        """Creep ``(dx, dy)`` in nm at time(s) ``t``: the sum over recorded moves, the
+        old ones folded into a power series once there are many (:mod:`.creep_sum`)."""
         tq = np.asarray(t, float)
         out = np.zeros(tq.shape + (2,))
         if self._moves_t:
-            flat = tq.reshape(-1)
-            acc = np.zeros((flat.size, 2))
-            ts, ss = np.asarray(self._moves_t), np.asarray(self._moves_s)
-            cp = self.creep_params
-            for i in range(0, ts.size, 256):  # bounded memory for many moves
-                dt = np.maximum(flat[:, None] - ts[None, i:i + 256], 0.0)
-                acc += np.log10(1.0 + dt / cp.tau) @ ss[i:i + 256]
-            out = cp.amplitude * acc.reshape(out.shape)
+            out = self.creep_params.amplitude * self._sum(tq.reshape(-1)).reshape(out.shape)
         return _split(out)
 
     def offset(self, t):

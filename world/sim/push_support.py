@@ -3,8 +3,8 @@
 :class:`PushWorld` keeps the truth of every object in a
 :class:`~nanoasm.world.sim.contacts.SimContacts` (one unit per particle or rod, one per
 wire segment) and answers the geometric questions of :mod:`nanoasm.world.sim.push`:
-which objects lie near a box (vectorised over all units, so idle objects cost one array
-operation per chunk), the gap from the tip to an object, the height the apex rides at
+which objects lie near a box (through the contact space's grid, so idle objects far from
+the tip cost nothing), the gap from the tip to an object, the height the apex rides at
 over it, whether a pose enters an obstacle; it moves whole objects (translate, jump) and
 keeps a wire's segments joined after other objects shoved them.
 """
@@ -110,14 +110,22 @@ class PushWorld:
         return max(0.0, 2.0 * r * (1.0 - q * q))
 
     def candidates(self, lo, hi, reach: float) -> np.ndarray:
-        """Objects whose footprints come within ``reach`` nm of the box ``lo``-``hi`` (sorted)."""
+        """Objects whose footprints come within ``reach`` nm of the box ``lo``-``hi`` (sorted).
+
+        The contact space's grid gives the units near the box (a chunk's box spans a few
+        cells), so the cost follows the objects near the tip, not the sample's count."""
         a, b, r = self.contacts.cores()
         if r.size == 0:
             return np.zeros(0, np.int64)
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        near = self.contacts.units_near(lo - reach - 1.0, hi + reach + 1.0)   # 1 nm: a superset to rounding
+        if near is not None:
+            a, b, r = a[near], b[near], r[near]
         ulo = np.minimum(a, b) - (r + reach)[:, None]
         uhi = np.maximum(a, b) + (r + reach)[:, None]
-        hit = np.all((ulo <= np.asarray(hi)) & (uhi >= np.asarray(lo)), axis=1)
-        return np.unique(self.contacts.groups[hit])
+        hit = np.all((ulo <= hi) & (uhi >= lo), axis=1)
+        groups = self.contacts.groups if near is None else self.contacts.groups[near]
+        return np.unique(groups[hit])
 
     def unit_gaps(self, units: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Least clearance (nm) from points ``(x, y)`` ``(n,)`` to the given units' footprints."""

@@ -168,8 +168,7 @@ def _instrument(sim: SimulatedAFM, t: Table) -> None:
     dm.epoch = drift.number("epoch")
     times = _floats(drift, "moves_t", (None,))
     steps = _floats(drift, "moves_s", (len(times), 2))
-    dm._moves_t = [float(v) for v in times]
-    dm._moves_s = [(float(a), float(b)) for a, b in steps]
+    dm.set_moves(times, steps)
     moves = _table(t, "moves", "start", "still")
     sim._moves.start = np.array(moves.pair("start"))
     sim._moves.still = moves.integer("still", nonnegative=True)
