@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
+import numpy as np
 import pytest
 
 from nanoasm.dryrun import dry_run
@@ -99,3 +100,30 @@ def test_a_drift_jump_during_the_check_scans_does_not_falsify_the_verdict():
     # a slot whose assigned object the check scan did not find says why
     assert any(t.startswith("slot ") and "the check scan did not find" in t for t in events.texts), events.texts
     assert not out.disagreements and len(out.truly_filled) >= len(layout.targets) - 1
+
+
+def test_the_relocalisation_mask_is_each_body_widened_and_costs_the_boxes_only():
+    """The mask against the brute-force one (shapely, every pixel against every body);
+    bodies partly or wholly off the image included."""
+    import shapely
+
+    from nanoasm.bodies import Body
+    from nanoasm.executor.relocalise import MASK_MARGIN, _mask
+    from nanoasm.instrument.heightmap import HeightImage
+
+    rng = np.random.default_rng(7)
+    image = HeightImage(np.zeros((60, 80)), 25.0, origin=(-137.0, 52.0))
+    bodies = [(Body(f"p{i}", "particle", (rng.uniform(-400, 2300), rng.uniform(-300, 1900)), rng.uniform(40, 120)),
+               rng.uniform(0, 30)) for i in range(12)]
+    bodies += [(Body(f"r{i}", "rod", (rng.uniform(-400, 2300), rng.uniform(-300, 1900)), 80.0,
+                     rng.uniform(-180, 180), rng.uniform(200, 1500)), rng.uniform(0, 30)) for i in range(6)]
+    x, y = image.pixel_centres()
+    pts = shapely.points(np.repeat(x[None, :], len(y), 0), np.repeat(y[:, None], len(x), 1))
+    want = np.ones(image.shape, bool)
+    for body, extra in bodies:
+        (ax, ay), (bx, by) = body.core()
+        core = shapely.LineString([(ax, ay), (bx, by)]) if (ax, ay) != (bx, by) else shapely.Point(ax, ay)
+        want &= shapely.distance(pts, core) > body.radius + extra + MASK_MARGIN
+    got = _mask(image, bodies)
+    assert 0 < got.sum() < got.size
+    assert np.array_equal(got, want)
