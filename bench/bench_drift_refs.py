@@ -112,8 +112,11 @@ def _median(rows, key):
     return statistics.median(vals) if vals else math.nan
 
 
-def _fmt(v, d=3):
-    return "-" if isinstance(v, float) and math.isnan(v) else (f"{v:.{d}g}" if isinstance(v, float) else str(v))
+def _fmt(v, d=3) -> str:
+    """A table cell: ``-`` for None or NaN, ``d`` significant digits for a float."""
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    return f"{v:.{d}g}" if isinstance(v, float) else str(v)
 
 
 def provenance(script: str, argv: list[str], runs: int, seconds: float) -> list[str]:

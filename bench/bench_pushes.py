@@ -23,7 +23,7 @@ import statistics
 import sys
 import time
 
-from bench_drift_refs import family_sweep, provenance
+from bench_drift_refs import _fmt, family_sweep, provenance
 
 FAMILIES = ("sparse", "dense", "mixed", "allpushed", "wide", "device")
 BINS = ((0.0, 300.0, "< 300 nm"), (300.0, 1000.0, "300-1000 nm"), (1000.0, 2000.0, "1-2 µm"),
@@ -72,12 +72,6 @@ def truth_errors(layout, final) -> list[float]:
     dist = np.array([[math.dist(t.at, o.at) for o in final] for t in targets])
     rows, cols = linear_sum_assignment(np.where(ok, dist, 1e9) - 1e12 * ok)
     return [float(dist[i, j]) for i, j in zip(rows, cols) if ok[i, j]]
-
-
-def _fmt(v, d=3) -> str:
-    if isinstance(v, float) and math.isnan(v):
-        return "-"
-    return f"{v:.{d}g}" if isinstance(v, float) else str(v)
 
 
 def report(rows: list[dict], argv: list[str], seconds: float) -> str:

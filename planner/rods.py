@@ -364,18 +364,17 @@ class RodController:
         return out
 
     def _swing(self, rod: Body, end: int, swing: float) -> RodPush | None:
-        """The push near ``end`` that turns ``rod`` by ``swing`` degrees (signed, the side
-        is the one that turns it that way), or None if it collides or turns too little."""
+        """The push near ``end`` that turns ``rod`` by ``swing`` degrees (signed), or None if
+        it collides or does not turn the rod that way. A push near end ``e`` toward side
+        ``s`` turns the rod by the sign of ``e * s`` (the pivot lies beyond the centre)."""
         if abs(swing) < 1e-3:
             return None
-        for side in (1, -1):
-            t0, t1 = push_primitive(rod, end, side, abs(swing), self.options)
-            after = simulate_push(rod, t0, t1, self.options.tip_radius, pivot_offset=self.offsets.get(rod.id, 0.0))
-            if (after.angle - rod.angle) * swing > 0:
-                if (_tip_free(self.space, t0, self.options.tip_radius, rod.id)
-                        and _rotation_sweep(self.space, rod, after, self.clearance, self.exempt)):
-                    return RodPush((t0, t1), after)
-                return None
+        side = end if swing > 0 else -end
+        t0, t1 = push_primitive(rod, end, side, abs(swing), self.options)
+        after = simulate_push(rod, t0, t1, self.options.tip_radius, pivot_offset=self.offsets.get(rod.id, 0.0))
+        if (after.angle - rod.angle) * swing > 0 and _tip_free(self.space, t0, self.options.tip_radius, rod.id) \
+                and _rotation_sweep(self.space, rod, after, self.clearance, self.exempt):
+            return RodPush((t0, t1), after)
         return None
 
     def _finish_greedy(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body, bool]:
