@@ -165,7 +165,7 @@ class RunEngine:
             try:
                 self._clean_up(procedure)
             finally:
-                signals.restore()
+                signals.restore(by_signal=self.state is RunState.ABORTED)
             if self.state is RunState.DONE:
                 signals.raise_held()
 

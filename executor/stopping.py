@@ -16,12 +16,28 @@ end of Ctrl-C.
 
 Only the main thread handles signals. SIGINT is taken over only from Python's default
 handler: one ignored (a sweep's worker) or the host program's own is left alone.
+
+A program that ends once a run is stopped by a signal (the ``nanoasm`` command) calls
+:func:`ignore_after_stop`: the handlers are then not restored after such a stop, the
+signals stay ignored, so a second Ctrl-C a millisecond after the first cannot cut what
+the program still prints or closes on its way out (it used to: the line naming the
+written log went missing).
 """
 
 from __future__ import annotations
 
 import signal
 import threading
+
+
+_ignore_after_stop = False
+
+
+def ignore_after_stop(enabled: bool = True) -> None:
+    """After a run stopped by SIGINT or SIGTERM, leave both ignored rather than restore
+    the handlers from before (for a process that ends then)."""
+    global _ignore_after_stop
+    _ignore_after_stop = enabled
 
 
 class StopSignals:
@@ -52,10 +68,12 @@ class StopSignals:
     def _raise(self, signum: int) -> None:
         raise KeyboardInterrupt if signum == signal.SIGINT else self.terminated()
 
-    def restore(self) -> None:
-        """The handlers from before :meth:`install`."""
+    def restore(self, by_signal: bool = False) -> None:
+        """The handlers from before :meth:`install` (``by_signal``: the run was stopped
+        by a signal; both stay ignored then if :func:`ignore_after_stop` was asked for)."""
+        ignore = by_signal and _ignore_after_stop
         for sig, handler in self._previous.items():
-            signal.signal(sig, handler)
+            signal.signal(sig, signal.SIG_IGN if ignore else handler)
         self._previous.clear()
 
     def raise_held(self) -> None:

@@ -796,6 +796,9 @@ def _main(argv: list[str] | None) -> int:
 
 
 def script() -> None:
+    from nanoasm.executor.stopping import ignore_after_stop
+
+    ignore_after_stop()         # the process ends once a run is stopped: a further Ctrl-C cannot cut its last lines
     sys.exit(main(restore_signals=False))
 
 

@@ -122,3 +122,32 @@ def test_two_ctrl_c_a_few_ms_apart_leave_a_closed_resumable_log_and_one_line(tmp
     assert [m.data["reason"] for m in contents.topic("/stop")] == ["interrupted (Ctrl-C)"]
     point = resume_point(log, "dry-run", at=read_sim_state(sim_state_path(log))["t"])
     assert point.state["remaining"]
+
+
+def test_a_program_that_ends_on_a_stop_keeps_further_signals_ignored():
+    """With ignore_after_stop (the nanoasm command), a run stopped by Ctrl-C leaves SIGINT
+    and SIGTERM ignored: a second Ctrl-C cannot cut the lines the command prints after
+    the run (the log's 'written' line went missing in CI when it landed there)."""
+    from nanoasm.executor.stopping import ignore_after_stop
+
+    stage, rec = Stage(), Recorder()
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    ignore_after_stop()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            RunEngine(stage, [rec]).run(_interrupted(stage))
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == (signal.SIG_IGN, signal.SIG_IGN)
+        os.kill(os.getpid(), signal.SIGINT)         # ignored: nothing raised
+        time.sleep(0.01)
+        # a run that completes restores them as ever
+        signal.signal(signal.SIGINT, before[0])
+        signal.signal(signal.SIGTERM, before[1])
+        done = Stage()
+        engine = RunEngine(done, [Recorder()])
+        engine.run(away(done))
+        assert engine.state is RunState.DONE
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    finally:
+        ignore_after_stop(False)
+        signal.signal(signal.SIGINT, before[0])
+        signal.signal(signal.SIGTERM, before[1])
