@@ -32,7 +32,7 @@ from . import course as courses
 from .belief import Belief
 from .context import RunContext
 from .course import Course
-from .drift_steps import bootstrap
+from .drift_steps import bootstrap, unskewed_obstacles
 from .engine import Msg
 from .estimators import estimator_for
 from .motion_steps import travel_to
@@ -128,6 +128,12 @@ class Assembly:
         # the drift velocity first: the plan needs the objects where they are, not where
         # the full scan's rows put them (hundreds of nm apart over a frame)
         yield from bootstrap(ctx)
+
+        def row_time(y: float) -> float:
+            return t0 + (min(max(y * pixels / region_side, 0.0), pixels - 1.0) + 0.5) * line_time
+
+        # the obstacles too (electrodes: a slot beside one is planned against where it is)
+        ctx.belief.obstacles = unskewed_obstacles(env.obstacles, drift, row_time)
         w0 = time.perf_counter()
         plan = self.replanner.start(self.environment())
         ledger.wall["plan"] += time.perf_counter() - w0

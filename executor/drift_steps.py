@@ -9,6 +9,8 @@ measure and what a measurement means is the drift estimator's
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from . import creep_terms
@@ -173,6 +175,20 @@ def _bootstrap_picks(ctx: RunContext) -> list[tuple[str, str, float]]:
     first = sorted(dict.fromkeys(spread), key=lambda c: (-c[2], c[1]))
     rest = sorted((c for c in both + edges if c not in first), key=lambda c: (-c[2], c[1]))
     return first + rest
+
+
+def unskewed_obstacles(obstacles, drift, row_time) -> tuple:
+    """The full scan's obstacles with each vertex's row drift taken out, as
+    :meth:`RunContext.position` does for objects seen only in the full scan (``row_time(y)``:
+    when the row at ``y`` was scanned). Computed once the drift is bootstrapped: over a
+    frame of minutes the rows drift apart by hundreds of nm, which sheared and shifted the
+    electrodes the planner keeps rods and particles clear of."""
+    out = []
+    for ob in obstacles:
+        poly = tuple((float(x), float(y)) for x, y in
+                     (drift.unskew(np.asarray(p, float), row_time(p[1]) - drift.epoch) for p in ob.polygon))
+        out.append(replace(ob, polygon=poly))
+    return tuple(out)
 
 
 def bootstrap(ctx: RunContext):

@@ -19,12 +19,12 @@ from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
 from nanoasm.world.environment import Environment, EnvObject
 
-from .assign import assignable, effort, match
+from .assign import assignable, compatible, effort, match
 from .freespace import FreeSpace
 from .options import PlanOptions
 from .paths import Mover, centre_path, path_length, turns
 from .plan import Assignment, Expect, Operation, Plan, Unfilled
-from .rods import RodController, push_limit
+from .rods import RodController, approach_pose, push_limit, roomy
 from .sequence import order
 
 Progress = Callable[[int, int], None]
@@ -171,6 +171,15 @@ class _Session:
         if o.kind == "rod":    # a rod swings its ends: free the room around where it starts
             blockers += [b for b in self.space.blockers(o.geometry(), o.length / 2, (o.id,))
                          if b not in self.placed and b not in blockers]
+            # and, into a slot with no room to line up in, the sideways walk
+            # (:func:`~.rods.approach_pose`), were the objects not yet placed out of its way
+            loose = tuple(b for b in self.space.bodies if b not in self.placed and b != o.id)
+            enclosed = not roomy(self.space, t, self.options, None, tuple(self.space.bodies))
+            pre = approach_pose(self.space, t, self.options, None, o, loose) if enclosed else None
+            if pre is not None:
+                walk = shapely.union(pre.geometry(), t.geometry()).convex_hull
+                blockers += [b for b in self.space.blockers(walk, t.radius, (o.id,))
+                             if b not in self.placed and b not in blockers]
         parked = [b for b in blockers if self.park(b)]
         return bool(parked)
 
@@ -197,6 +206,10 @@ class _Session:
                     self.stats.parked += 1
                     return True
         return False
+
+
+#: Spare objects tried for a slot whose assigned object finds no way in.
+SPARES = 2
 
 
 def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None = None,
@@ -232,6 +245,19 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
             continue
         if s.fill(key, object_of[key]):
             done.append((key, object_of[key]))
+            continue
+        # the assigned particle has no way in (it lies beyond a rod that now closes a gap,
+        # say): the nearest spare particles that fit, two at most (not rods: a rod's
+        # search costs seconds, and a replan would pay them again)
+        claimed = {o for _, o in (*matching.moves, *matching.staying, *done)}
+        target = s.targets[key]
+        spares = sorted((effort(target, o), o.id) for o in s.objects.values()
+                        if target.kind == "particle" and o.id not in claimed and o.id not in s.fixed_ids
+                        and o.id not in s.placed and assignable(o, options)
+                        and compatible(target, o, layout.tolerance))
+        spare = next((o for _, o in spares[:SPARES] if s.fill(key, o)), None)
+        if spare is not None:
+            done.append((key, spare))
         else:
             unfilled.append(Unfilled(key, f"no path for {object_of[key]!r}"))
     if progress:

@@ -104,11 +104,12 @@ def capsule_cores(xs, ys, angles, length: float, diameter: float) -> np.ndarray:
     return shapely.linestrings(ends)
 
 
-def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str, clearance: float | None = None,
+def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str | tuple[str, ...], clearance: float | None = None,
                exempt: frozenset[int] = frozenset()) -> bool:
     """The rod's capsule is clear at a, b and poses between (2° apart).
 
-    ``exempt``: fixed things not to count (ones the rod started on, to be pushed off).
+    ``ignore``: the id (or ids) of bodies not to count; ``exempt``: fixed things not to
+    count (ones the rod started on, to be pushed off).
     """
     turn = axis_error(a.angle, b.angle)
     n = max(1, math.ceil(turn / 2.0), math.ceil(math.dist(a.at, b.at) / max(a.radius, 1.0)))
@@ -117,7 +118,7 @@ def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str, clearance: float
     t = np.linspace(0.0, 1.0, n + 1)
     cores = capsule_cores(a.at[0] + t * (b.at[0] - a.at[0]), a.at[1] + t * (b.at[1] - a.at[1]),
                           a.angle + t * d_ang, a.length, a.diameter)
-    return space.all_free(cores, a.radius, (ignore,), exempt, clearance)
+    return space.all_free(cores, a.radius, ignore if isinstance(ignore, tuple) else (ignore,), exempt, clearance)
 
 
 def _tip_free(space: FreeSpace, tip: Point, tip_radius: float, ignore: str) -> bool:
@@ -414,22 +415,49 @@ class RodController:
         (:class:`~nanoasm.planner.ompl_setup.Budget`) only stops a pathological case,
         and says so in the log."""
         self.exempt = self.space.lying_on(rod.geometry(), rod.radius)
+        cramped = not swept_free(self.space, rod, rod, rod.id, None, self.exempt)
+        # a rod that starts closer to its neighbours than the clearance only avoids
+        # contact; one whose way with the full clearance is shut (a slot in a gap barely
+        # wider than the rod) tries again with the tip's radius
+        # a slot with no room to line the rod up in (between electrodes) is entered by a
+        # sideways walk, what a zigzag does best, from where there is room (an SE(2) path
+        # to there first); the other way round when the direct way fails
+        # (the direct search, cheap, always first)
+        enclosed = not roomy(self.space, goal, self.options, None, tuple(self.space.bodies))
+        # (enclosed: by fixed things, electrodes; an enclosed slot: the walk with the tip's clearance before an SE(2) path, which
+        # would have to turn the rod where it has no room to; a slot with room, the direct
+        # search and one SE(2) path as ever: a slot no rod reaches is tried again at every
+        # replan, and the walk does not help there)
+        first = 0.0 if cramped else None
+        tries = [(first, enclosed, True)]
+        if enclosed:
+            tries += [(self.options.tip_radius, True, False)] if not cramped else []
+            tries += [(first, False, False)]
+        found = None
+        for clearance, approach, direct in tries:
+            again = self._pushes(rod, goal, max_pushes, clearance, approach=approach, direct=direct)
+            if again[2]:
+                return again
+            found = found or again
+        return found
+
+    def _pushes(self, rod: Body, goal: Body, max_pushes: int, clearance: float | None,
+                approach: bool = False, direct: bool = True) -> tuple[list[RodPush], Body, bool]:
         near_pos = 0.3 * math.radians(self.options.rod_swing) * rod.length
         near_ang = self.options.rod_swing / 2
-        cramped = not swept_free(self.space, rod, rod, rod.id, None, self.exempt)
         try:
-            # a rod that starts closer to its neighbours than the clearance only avoids contact
-            self.clearance = 0.0 if cramped else None
+            self.clearance = clearance
             legs = [goal]
             what = f"zigzag of {rod.id!r}"
             self.allowance = Budget.of(self.options, EXPANSIONS_PER_UNIT, what)
-            first = self._leg(rod, goal, near_pos, near_ang)
+            first = self._leg(rod, goal, near_pos, near_ang) if direct else None
             if first is None:
                 self.allowance = Budget.of(self.options, EXPANSIONS_PER_UNIT, what, share=LEG_SHARE)
                 # the full clearance along the SE(2) path: a rod's end strays ~15 nm per 2°
                 # of its executed angle, and a neighbour it touches hides it from the scans
-                self.clearance = 0.0 if cramped else None
-                waypoints = se2_waypoints(self.space, rod, goal, self.options)
+                self.clearance = clearance
+                waypoints = (approach_waypoints(self.space, rod, goal, self.options, clearance) if approach
+                             else se2_waypoints(self.space, rod, goal, self.options))
                 if not waypoints:
                     return [], rod, False
                 legs = waypoints[1:]
@@ -488,6 +516,69 @@ def se2_waypoints(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions)
         if found:
             return found
     return None
+
+
+def roomy(space: FreeSpace, pose: Body, options: PlanOptions, clearance: float | None,
+          ignore: tuple[str, ...] = ()) -> bool:
+    """Whether a rod at ``pose`` has room to line itself up: to turn by the largest swing
+    and to shift along its axis by a fifth of its length, either way (``ignore``: ids of
+    bodies not to count, the rod's own among them)."""
+    ignore = (pose.id, *ignore)
+    th = math.radians(pose.angle)
+    shift = 0.2 * pose.length
+    moves = [Body(pose.id, "rod", (pose.at[0] + s * shift * math.cos(th), pose.at[1] + s * shift * math.sin(th)),
+                  pose.diameter, pose.angle, pose.length) for s in (1.0, -1.0)]
+    moves += [Body(pose.id, "rod", pose.at, pose.diameter, pose.angle + s * options.rod_swing, pose.length)
+              for s in (1.0, -1.0)]
+    return all(swept_free(space, pose, m, ignore, clearance) for m in moves)
+
+
+def approach_pose(space: FreeSpace, goal: Body, options: PlanOptions, clearance: float | None,
+                  rod: Body | None = None, ignore: tuple[str, ...] = ()) -> Body | None:
+    """Where a rod at ``goal``'s angle can start a straight sideways walk into it: the
+    nearest pose along ``goal``'s normal (either side, in steps of a tenth of its length,
+    up to twice its length) that is :func:`roomy`, the way from it to ``goal`` being
+    clear. A zigzag moves a rod sideways with ease and along its axis hardly at all, so a
+    slot between two electrodes is entered sideways from where there is room to line the
+    rod up. The side nearer ``rod`` (when given) first; None when neither side has such
+    a pose. Bodies ``ignore`` names do not count (ones that will be moved out of the way)."""
+    ignore = (goal.id, *ignore)
+    th = math.radians(goal.angle)
+    found = []
+    for side in (1.0, -1.0):
+        nx_, ny_ = -math.sin(th) * side, math.cos(th) * side
+        for k in range(1, 21):
+            d = 0.1 * k * goal.length
+            pre = Body(goal.id, "rod", (goal.at[0] + d * nx_, goal.at[1] + d * ny_), goal.diameter,
+                       goal.angle, goal.length)
+            if not space.inside(pre.geometry(), pre.radius) or not swept_free(space, goal, pre, ignore, clearance):
+                break
+            if roomy(space, pre, options, clearance, ignore):
+                found.append(pre)
+                break
+    if rod is not None:
+        found.sort(key=lambda p: math.dist(p.at, rod.at))
+    return found[0] if found else None
+
+
+def approach_waypoints(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions,
+                       clearance: float | None) -> list[Body] | None:
+    """An SE(2) path (:func:`se2_waypoints`) to ``goal``'s :func:`approach_pose`, then the
+    straight sideways walk into ``goal`` in legs of a quarter of the rod's length."""
+    pre = approach_pose(space, goal, options, clearance, rod)
+    if pre is None:
+        return None
+    pre = Body(rod.id, "rod", pre.at, rod.diameter, pre.angle, rod.length)
+    to_pre = se2_waypoints(space, rod, pre, options)
+    if not to_pre:
+        return None
+    n = max(1, math.ceil(math.dist(pre.at, goal.at) / (rod.length / 4)))
+    last = to_pre[-1]
+    ang = last.angle + math.remainder(goal.angle - last.angle, 180.0)
+    walk = [Body(rod.id, "rod", (last.at[0] + (goal.at[0] - last.at[0]) * i / n,
+                                 last.at[1] + (goal.at[1] - last.at[1]) * i / n), rod.diameter, ang, rod.length)
+            for i in range(1, n + 1)]
+    return to_pre + walk
 
 
 def _se2_path(space: FreeSpace, rod: Body, goal: Body, options: PlanOptions,

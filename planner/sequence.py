@@ -14,6 +14,7 @@ parked first where no later path needs the space.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 
 import networkx as nx
@@ -28,6 +29,24 @@ def _footprint(b: Body, grow: float = 0.0) -> shapely.Geometry:
     return b.geometry().buffer(b.radius + grow, quad_segs=8)
 
 
+def _rod_or_particle_first(t1: str, t2: str, targets: Mapping[str, Body], objects: Mapping[str, Body],
+                           slot_obj: Mapping[str, str]) -> str:
+    """Of a rod slot and a particle slot whose corridors cross each other's slots, the one
+    to fill first: the rod when the particle slot lies on the side of the rod slot's axis
+    the rod comes from (a particle there would bar its way in: between electrodes, the
+    only way), else the particle (it may have to pass where the rod will lie)."""
+    rod, part = (t1, t2) if targets[t1].kind == "rod" else (t2, t1)
+    slot = targets[rod]
+    th = math.radians(slot.angle or 0.0)
+    nx_, ny_ = -math.sin(th), math.cos(th)
+
+    def side(p) -> float:
+        return (p[0] - slot.at[0]) * nx_ + (p[1] - slot.at[1]) * ny_
+
+    comes_from = side(objects[slot_obj[rod]].at)
+    return rod if comes_from * side(targets[part].at) > 0 else part
+
+
 def dependency_graph(moves: Sequence[tuple[str, str]], targets: Mapping[str, Body],
                      objects: Mapping[str, Body], fixed_ids: set[str], clearance: float
                      ) -> tuple[nx.DiGraph, dict[str, str]]:
@@ -35,6 +54,8 @@ def dependency_graph(moves: Sequence[tuple[str, str]], targets: Mapping[str, Bod
     something that can never move (wires, edge objects)."""
     g = nx.DiGraph()
     slot_of = {o: t for t, o in moves}
+    moves_index = {t: i for i, (t, _) in enumerate(moves)}
+    slot_obj = dict(moves)
     for t, _ in moves:
         g.add_node(("fill", t))
     blocked: dict[str, str] = {}
@@ -65,10 +86,15 @@ def dependency_graph(moves: Sequence[tuple[str, str]], targets: Mapping[str, Bod
         corridors[t] = line.buffer(reach + clearance, quad_segs=4)
     ctree_ids = list(corridors)
     ctree = shapely.STRtree([corridors[t] for t in ctree_ids])
+    crossing = {(ctree_ids[k], t2) for t2, _ in moves
+                for k in ctree.query(_footprint(targets[t2]), predicate="intersects") if ctree_ids[k] != t2}
     for t2, _ in moves:
-        for k in ctree.query(_footprint(targets[t2]), predicate="intersects"):
-            t1 = ctree_ids[k]
-            if t1 != t2 and not g.has_edge(("fill", t2), ("fill", t1)):
+        for t1 in sorted((t1 for t1, t in crossing if t == t2), key=lambda t: moves_index[t]):
+            if (t2, t1) in crossing and targets[t1].kind != targets[t2].kind:
+                first = _rod_or_particle_first(t1, t2, targets, objects, slot_obj)
+                if first != t1:
+                    continue
+            if not g.has_edge(("fill", t2), ("fill", t1)):
                 g.add_edge(("fill", t1), ("fill", t2), hard=False)
     for t2, obj2 in moves:
         for k in ctree.query(_footprint(objects[obj2]), predicate="intersects"):

@@ -1,0 +1,134 @@
+"""A rod slot between two electrodes that span the area (the ``device`` family's): the
+order of a rod and the particles flanking it, the sideways walk in, spare objects when
+the assigned one has no way in, and electrodes planned where they are, not where the
+full scan's drifting rows drew them (issue 14: the device family's rod was never pushed)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from test_planner import filled, replay
+
+from nanoasm.bodies import Body
+from nanoasm.cad.layout import Keepout, Layout, Tolerance
+from nanoasm.executor.drift_steps import unskewed_obstacles
+from nanoasm.planner import check_plan, plan_assembly
+from nanoasm.planner.freespace import FreeSpace
+from nanoasm.planner.options import PlanOptions
+from nanoasm.planner.rods import approach_pose, roomy
+from nanoasm.planner.sequence import order
+from nanoasm.world.environment import EnvObject, EnvObstacle, Environment
+
+A = 4000.0
+C = A / 2
+#: Two pads from the area's edges to a 1400 nm gap, 1600 nm tall: the area's upper and
+#: lower halves meet only in the gap.
+PADS = (((0.0, C - 800), (C - 700, C - 800), (C - 700, C + 800), (0.0, C + 800)),
+        ((C + 700, C - 800), (A, C - 800), (A, C + 800), (C + 700, C + 800)))
+BAR = Body("bar", "rod", (C, C), 90.0, 0.0, 1200.0)
+#: Two particle slots below the rod slot, 60 nm clear of it.
+BELOW = (Body("p1", "particle", (C - 300, C - 150), 90.0), Body("p2", "particle", (C + 300, C - 150), 90.0))
+
+
+def _case(objects) -> tuple[Layout, Environment]:
+    layout = Layout((A, A), (BAR, *BELOW), tuple(Keepout(p) for p in PADS), Tolerance(), "gap")
+    return layout, Environment((A, A), tuple(objects), tuple(EnvObstacle(p, 30.0) for p in PADS))
+
+
+def _plan_fills_every_slot(layout, env):
+    plan, _ = plan_assembly(layout, env)
+    assert not plan.unfilled, plan.unfilled
+    final = replay(plan, env)
+    assert filled(plan, layout, final) == {"bar", "p1", "p2"}
+    assert check_plan(plan, layout, env) == []
+    return plan
+
+
+def test_a_rod_from_below_goes_before_the_particles_that_would_bar_its_way():
+    """The rod comes up through the gap: particles put first below its slot would shut
+    the gap (they used to be: the rod was then never pushed). The particles nearest their
+    slots lie above the gap and cannot pass the rod in its slot: spares from below fill
+    the slots."""
+    objects = (EnvObject("r", "rod", (C - 400, 800.0), 90.0, 70.0, 1200.0),
+               EnvObject("a", "particle", (C + 150, C + 1000), 90.0),      # above the gap
+               EnvObject("e", "particle", (C - 250, C + 1000), 90.0),
+               EnvObject("b", "particle", (1300.0, 600.0), 90.0),
+               EnvObject("d", "particle", (2900.0, 500.0), 90.0))
+    layout, env = _case(objects)
+    plan = _plan_fills_every_slot(layout, env)
+    first = [op.object for op in plan.operations]
+    assert first[0] == "r" and set(first[first.index("r"):len(first) - first[::-1].index("r")]) == {"r"}
+    assert {a.object for a in plan.assignment} == {"r", "b", "d"}
+
+
+def test_a_rod_from_above_lets_a_particle_below_go_first():
+    """Particle slots on the far side of the rod slot from where the rod comes do not bar
+    its way, and a particle from above must pass the slot before the rod shuts the gap."""
+    objects = (EnvObject("r", "rod", (C - 300, C + 1250), 90.0, 10.0, 1200.0),
+               EnvObject("a", "particle", (C + 150, C + 900), 90.0),
+               EnvObject("b", "particle", (1500.0, 700.0), 90.0),
+               EnvObject("d", "particle", (2600.0, 600.0), 90.0))
+    layout, env = _case(objects)
+    plan = _plan_fills_every_slot(layout, env)
+    assigned = {a.target: a.object for a in plan.assignment}
+    assert assigned["p2"] == "a"
+    ops = [op.object for op in plan.operations]
+    assert ops.index("a") < ops.index("r")
+
+
+def test_order_of_crossing_rod_and_particle_moves_does_not_depend_on_their_listing():
+    targets = {t.id: t for t in (BAR, *BELOW)}
+    objects = {"r": Body("r", "rod", (C - 400, 800.0), 90.0, 70.0, 1200.0),
+               "a": Body("a", "particle", (C + 150, C + 1000), 90.0),
+               "b": Body("b", "particle", (1300.0, 600.0), 90.0)}
+    moves = [("p1", "b"), ("p2", "a"), ("bar", "r")]
+    efforts = {t: math.dist(objects[o].at, targets[t].at) for t, o in moves}
+    for listing in (moves, moves[::-1]):
+        nodes, _ = order(listing, targets, objects, set(), 20.0, efforts)
+        fills = [n[1] for n in nodes if n[0] == "fill"]
+        assert fills.index("bar") < fills.index("p2")
+
+
+def test_the_approach_pose_lies_outside_the_gap_on_the_rods_side():
+    layout, env = _case(())
+    options = PlanOptions()
+    space = FreeSpace((A, A), [(__import__("shapely").Polygon(p), 0.0) for p in PADS], {}, options.clearance)
+    assert not roomy(space, BAR, options, None)           # no room to line up between the pads
+    for start, sign in (((C, 300.0), -1), ((C, 3700.0), 1)):
+        rod = Body("r", "rod", start, 90.0, 30.0, 1200.0)
+        pre = approach_pose(space, BAR, options, None, rod)
+        assert pre is not None and pre.angle == BAR.angle and pre.at[0] == pytest.approx(C)
+        # beyond the pads (their half-height and the rod's radius), no further than needed
+        beyond = sign * (pre.at[1] - C) - 800 - BAR.radius
+        assert 0 < beyond <= 0.1 * BAR.length + options.clearance
+        assert roomy(space, pre, options, None)
+
+
+class _Drifting:
+    """A drift estimate of a steady velocity: a full-scan point seen ``tau`` s after the
+    epoch had drifted by ``v tau``."""
+
+    epoch = 100.0
+    v = np.array([-0.3, 0.25])
+
+    def unskew(self, at, tau):
+        return np.asarray(at, float) - self.v * tau
+
+
+def test_obstacles_are_unskewed_vertex_by_vertex_with_their_rows_time():
+    rows = (100.0, 2.0, 10.0)          # the first row's time, s a row, nm a row
+
+    def row_time(y):
+        return rows[0] + (y / rows[2] + 0.5) * rows[1]
+
+    pad = EnvObstacle(((0.0, 0.0), (500.0, 0.0), (500.0, 1000.0), (0.0, 1000.0)), 30.0)
+    (moved,) = unskewed_obstacles((pad,), _Drifting(), row_time)
+    assert moved.height == pad.height
+    for p, q in zip(pad.polygon, moved.polygon):
+        tau = row_time(p[1]) - _Drifting.epoch
+        assert q == pytest.approx(tuple(np.asarray(p) - _Drifting.v * tau))
+    # the top corner, scanned 200 s after the bottom one, moves 60 nm further: the shear
+    # a drifting scan draws is taken out
+    assert moved.polygon[2][0] - moved.polygon[1][0] == pytest.approx(0.3 * 200.0)
