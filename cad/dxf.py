@@ -7,6 +7,7 @@
   constant width as the diameter when it has one.
 - closed LWPOLYLINE (closed flag, or last vertex on the first): keep-out polygon, arcs
   (bulges) flattened.
+- closed LWPOLYLINE on the ``marks_layer`` (any case; none by default): alignment mark.
 - closed LWPOLYLINE on layer ``AREA`` (any case): the working area, an axis-aligned
   rectangle whose lower-left corner is the origin; without one, ``area=(w, h)`` in nm
   with the origin at the drawing's (0, 0). Other entities on that layer are ignored.
@@ -46,6 +47,7 @@ from .importers import (
     Point,
     area_option,
     axis_rectangle,
+    name_option,
     positive_option,
 )
 
@@ -89,7 +91,7 @@ _BINARY_SENTINEL = b"AutoCAD Binary DXF"
 
 def import_dxf(path: str | os.PathLike, *, scale: float | None = None,
                rod_diameter: float | None = None, area: tuple[float, float] | None = None,
-               warnings: list[str] | None = None) -> dict:
+               marks_layer: str | None = None, warnings: list[str] | None = None) -> dict:
     """Read a DXF drawing as a layout v1 dict.
 
     Parameters
@@ -102,6 +104,8 @@ def import_dxf(path: str | os.PathLike, *, scale: float | None = None,
         Diameter (nm) of the rods drawn as LINEs.
     area : (float, float), optional
         Working area (nm) when the drawing has no rectangle on layer ``AREA``.
+    marks_layer : str, optional
+        Layer (any case) whose closed LWPOLYLINEs are alignment marks; none by default.
     warnings : list of str, optional
         Receives a line per kind of ignored entity and about repairs ezdxf made.
     """
@@ -112,6 +116,11 @@ def import_dxf(path: str | os.PathLike, *, scale: float | None = None,
     binary = _check_bytes(read_bytes(path), src)
     doc, repairs = _read(path, src, binary)
     builder = _Mapper(src, Path(path).stem, _nm_per_unit(doc, scale, src), rod_diameter)
+    builder.marks_layer = None if marks_layer is None else name_option("marks_layer", marks_layer).upper()
+    code = doc.header.get("$INSUNITS", 0)
+    builder.units = (f"--scale {scale:g} nm per drawing unit" if scale is not None
+                     else f"$INSUNITS = {code}, {builder.unit:g} nm per drawing unit (--scale overrides it)" if code
+                     else "a unitless drawing at 1 nm per unit (--scale sets it)")
     if repairs:
         builder.notes.append(f"{src}: ezdxf repaired {repairs} problem(s) in the file")
     layout = builder.run(doc, size)
@@ -181,6 +190,7 @@ class _Mapper(LayoutBuilder):
         self.rod_diameter = rod_diameter
         self.origin: Point = (0.0, 0.0)
         self.arc_points = 0     # estimated points of the arcs flattened so far
+        self.marks_layer: str | None = None     # upper case
 
     def nm(self, p) -> Point:
         """Drawing coordinates -> layout nm."""
@@ -221,6 +231,11 @@ class _Mapper(LayoutBuilder):
         if _on_area_layer(e):
             if not (kind == "LWPOLYLINE" and _is_closed_polyline(e)):
                 self.ignore(f"{kind} on layer {AREA_LAYER}")
+        elif self.marks_layer is not None and str(e.dxf.get("layer", "0")).upper() == self.marks_layer:
+            if kind == "LWPOLYLINE" and _is_closed_polyline(e):
+                self._polyline(key, e, mark=True)
+            else:
+                self.ignore(f"{kind} on the marks layer")
         elif kind == "CIRCLE":
             self._circle(key, e)
         elif kind == "LINE":
@@ -251,7 +266,7 @@ class _Mapper(LayoutBuilder):
             self.fail(key, "no rod diameter (DXF lines have no width); give --rod-diameter")
         self.rod(key, self.nm(start), self.nm(end), diameter)
 
-    def _polyline(self, key: str, e: DXFGraphic) -> None:
+    def _polyline(self, key: str, e: DXFGraphic, *, mark: bool = False) -> None:
         self._planar(key, e)
         if _is_closed_polyline(e):
             self._arc_budget(key, e)
@@ -259,7 +274,7 @@ class _Mapper(LayoutBuilder):
                 points = list(make_path(e).flattening(FLATTEN_NM / self.unit, segments=8))
             except (ValueError, ZeroDivisionError, ArithmeticError) as exc:
                 self.fail(key, f"cannot flatten the outline ({exc})")
-            self.keepout(key, [self.nm(p) for p in points])
+            self.keepout(key, [self.nm(p) for p in points], what="mark" if mark else "keep-out")
         elif len(e) == 2:
             if any(b for *_, b in e.get_points("xyb")):
                 self.fail(key, "a rod polyline must be straight (it has an arc segment)")

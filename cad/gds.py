@@ -10,6 +10,8 @@ Defaults (each an option):
   its width; round or extended ends add their extension to the length) or a
   rectangle polygon (long side = length, short side = diameter).
 - keep-outs ``3/0``: polygons (paths there count as their outlines).
+- alignment marks: none by default; ``marks_layer`` names their layer (polygons, as
+  keep-outs).
 - working area ``0/0``: one axis-aligned rectangle; its lower-left corner is the
   origin. Without it, ``area=(w, h)`` in nm with the origin at the file's (0, 0).
 
@@ -95,7 +97,7 @@ def import_gds(path: str | os.PathLike, *, cell: str | None = None,
                area: tuple[float, float] | None = None,
                particle_layer: Layer | str = (1, 0), rod_layer: Layer | str = (2, 0),
                keepout_layer: Layer | str = (3, 0), area_layer: Layer | str = (0, 0),
-               warnings: list[str] | None = None) -> dict:
+               marks_layer: Layer | str | None = None, warnings: list[str] | None = None) -> dict:
     """Read a GDSII layout as a layout v1 dict.
 
     Parameters
@@ -108,6 +110,8 @@ def import_gds(path: str | os.PathLike, *, cell: str | None = None,
         Working area (nm) when the file has no rectangle on ``area_layer``.
     particle_layer, rod_layer, keepout_layer, area_layer : (int, int) or "L/D"
         Layer and datatype of each role.
+    marks_layer : (int, int) or "L/D", optional
+        Layer and datatype of alignment marks (polygons, as keep-outs); none by default.
     warnings : list of str, optional
         Receives a line per kind of ignored shape.
     """
@@ -116,6 +120,8 @@ def import_gds(path: str | os.PathLike, *, cell: str | None = None,
              "rod": layer_option("rod_layer", rod_layer),
              "keepout": layer_option("keepout_layer", keepout_layer),
              "area": layer_option("area_layer", area_layer)}
+    if marks_layer is not None:
+        roles["marks"] = layer_option("marks_layer", marks_layer)
     _check_distinct(roles)
     size = area_option(area) if area is not None else None
     cell = name_option("cell", cell) if cell is not None else None
@@ -131,6 +137,10 @@ def import_gds(path: str | os.PathLike, *, cell: str | None = None,
     for poly in top.get_polygons(include_paths=True, layer=roles["keepout"][0], datatype=roles["keepout"][1]):
         builder.keepout(_key("polygon", roles["keepout"], poly.points),
                         [_shift(p, origin) for p in poly.points])
+    if "marks" in roles:
+        m = roles["marks"]
+        for poly in top.get_polygons(include_paths=True, layer=m[0], datatype=m[1]):
+            builder.mark(_key("polygon", m, poly.points), [_shift(p, origin) for p in poly.points])
     _count_ignored(tally, set(roles.values()), builder)
     p, r = roles["particle"], roles["rod"]
     layout = builder.build(size, f"expected circle polygons on layer {p[0]}/{p[1]} "

@@ -9,7 +9,8 @@ the problem::
 
     layout = import_layout("chip.svg", scale=2.0)          # dict, not yet validated
 
-:class:`LayoutBuilder` collects slots and keep-outs for the format modules
+:class:`LayoutBuilder` collects slots, keep-outs and alignment marks (``marks_layer``:
+an SVG class or group name, a GDSII ``L/D``, a DXF layer) for the format modules
 (:mod:`.svg`, :mod:`.gds`, :mod:`.dxf`), which are imported only when needed.
 """
 
@@ -28,6 +29,10 @@ from nanoasm.param import check_number
 
 FORMAT = "nanoasm.layout/1"
 
+#: A working area's side (nm) beyond which the drawing's units are taken to be wrong
+#: (1 mm, more than any AFM scanner's range): the import is refused with a hint.
+IMPLAUSIBLE_SIDE = 1e6
+
 #: Largest distance (nm) between a flattened curve and its chords.
 FLATTEN_NM = 1.0
 
@@ -43,9 +48,9 @@ SUFFIXES = {".svg": "svg", ".gds": "gds", ".gds2": "gds", ".gdsii": "gds", ".dxf
 
 #: Keyword options each format accepts (besides ``warnings``).
 OPTIONS = {
-    "svg": ("scale", "keepout_class"),
-    "gds": ("cell", "area", "particle_layer", "rod_layer", "keepout_layer", "area_layer"),
-    "dxf": ("scale", "rod_diameter", "area"),
+    "svg": ("scale", "keepout_class", "marks_layer"),
+    "gds": ("cell", "area", "particle_layer", "rod_layer", "keepout_layer", "area_layer", "marks_layer"),
+    "dxf": ("scale", "rod_diameter", "area", "marks_layer"),
 }
 
 Point = tuple[float, float]
@@ -203,15 +208,17 @@ class LayoutBuilder:
         self.name = name
         self.targets: list[dict] = []
         self.keepouts: list[dict] = []
+        self.marks: list[dict] = []
         self.ignored: Counter[str] = Counter()
         self.notes: list[str] = []
+        self.units: str | None = None       # where the drawing's unit came from, for a wrong-unit hint
 
     def fail(self, key: str | None, problem: str) -> NoReturn:
         """Raise the located error for ``key``."""
         raise InputError(self.source, key, problem)
 
     def _count(self) -> None:
-        if len(self.targets) + len(self.keepouts) >= MAX_ELEMENTS:
+        if len(self.targets) + len(self.keepouts) + len(self.marks) >= MAX_ELEMENTS:
             self.fail(None, f"more than {MAX_ELEMENTS} targets and keep-outs; an import may "
                             f"produce at most {MAX_ELEMENTS}")
 
@@ -251,19 +258,24 @@ class LayoutBuilder:
         self.targets.append(self._with_id(target_id, {
             "kind": "rod", "at": at, "angle": angle, "length": length, "diameter": d}))
 
-    def keepout(self, key: str, points: Iterable[Point]) -> None:
-        """A keep-out polygon (nm); repeated and closing vertices are dropped."""
+    def keepout(self, key: str, points: Iterable[Point], *, what: str = "keep-out") -> None:
+        """A keep-out polygon (nm); repeated and closing vertices are dropped. With
+        ``what="mark"``, an alignment mark (a keep-out that registers the layout)."""
         self._count()
         pts = [(rounded(x), rounded(y)) for x, y in points]
         for p in pts:
-            self._check(key, "keep-out vertex", *p)
+            self._check(key, f"{what} vertex", *p)
         corners = ring(pts, collinear=0.0)
         if len(corners) < 3:
-            self.fail(key, f"keep-out outline has {len(corners)} distinct corner(s), needs 3")
+            self.fail(key, f"{what} outline has {len(corners)} distinct corner(s), needs 3")
         twice_area = sum(p[0] * q[1] - q[0] * p[1] for p, q in zip(corners, corners[1:] + corners[:1]))
         if twice_area == 0:
-            self.fail(key, "keep-out outline encloses no area")
-        self.keepouts.append({"polygon": [list(p) for p in corners]})
+            self.fail(key, f"{what} outline encloses no area")
+        (self.marks if what == "mark" else self.keepouts).append({"polygon": [list(p) for p in corners]})
+
+    def mark(self, key: str, points: Iterable[Point]) -> None:
+        """An alignment mark's polygon (nm): a feature on the sample, a keep-out too."""
+        self.keepout(key, points, what="mark")
 
     def ignore(self, what: str, count: int = 1) -> None:
         """Count an element the layout has no use for."""
@@ -274,12 +286,17 @@ class LayoutBuilder:
         self._check("area", "working area", *area)
         if min(area) <= 0:
             self.fail(None, f"working area must have a positive size, got {area[0]:g} x {area[1]:g} nm")
+        if max(area) > IMPLAUSIBLE_SIDE:
+            self.fail("area", f"working area {area[0]:g} x {area[1]:g} nm ({max(area) / 1e6:g} mm a side) is no "
+                              f"AFM's: are the drawing's units right? ({self.units or 'its unit'})")
         if not self.targets:
             self.fail(None, f"no targets found ({hint})")
         doc: dict = {"format": FORMAT, "name": self.name,
                      "area": [rounded(area[0]), rounded(area[1])], "target": self.targets}
         if self.keepouts:
             doc["keepout"] = self.keepouts
+        if self.marks:
+            doc["mark"] = self.marks
         return doc
 
     def report(self, warnings: list[str] | None) -> None:

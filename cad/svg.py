@@ -10,6 +10,8 @@ Mapping (user units are the root viewBox's, times ``scale`` nm):
   curves flattened) inside a ``<g>`` whose class is ``keepout_class``, whose id or
   Inkscape layer label starts with it, or carrying that class themselves. Every closed
   sub-path of a path is one polygon.
+- Alignment marks (``marks_layer``, none by default): closed shapes marked by that
+  class or group name the same way; they are keep-outs too.
 - Working area: the root viewBox (else its width and height); y is flipped, so the
   viewBox's lower-left corner is the origin.
 
@@ -72,7 +74,7 @@ _SEPARATOR = re.compile(r"\s*,\s*|\s+")
 
 
 def import_svg(path: str | os.PathLike, *, scale: float = 1.0, keepout_class: str = "keepout",
-               warnings: list[str] | None = None) -> dict:
+               marks_layer: str | None = None, warnings: list[str] | None = None) -> dict:
     """Read an SVG drawing as a layout v1 dict.
 
     Parameters
@@ -83,19 +85,23 @@ def import_svg(path: str | os.PathLike, *, scale: float = 1.0, keepout_class: st
         Nanometres per SVG user unit.
     keepout_class : str
         Class (or id / layer-label prefix of a group) that marks keep-out shapes.
+    marks_layer : str, optional
+        The same for alignment marks (closed shapes, as keep-outs); none by default.
     warnings : list of str, optional
         Receives a line per kind of ignored element.
     """
     src = str(path)
     scale = positive_option("scale", scale)
     keepout_class = name_option("keepout_class", keepout_class)
+    marks_layer = None if marks_layer is None else name_option("marks_layer", marks_layer)
     raw = read_bytes(path)
     root = _safe_root(raw, src)
     vx, vy, width, height = _viewport(root, src)
     doc = _parse(_annotate(root, src), src)
     builder = LayoutBuilder(src, Path(path).stem)
+    builder.units = f"--scale {scale:g} nm per user unit"
     frame = _Frame(vx, vy + height, scale)
-    _Walker(builder, frame, _to_user(doc, src), keepout_class).run(doc)
+    _Walker(builder, frame, _to_user(doc, src), keepout_class, marks_layer).run(doc)
     layout = builder.build((width * scale, height * scale),
                            "expected <circle> elements for particles or <line> elements for rods")
     builder.report(warnings)
@@ -314,11 +320,13 @@ class _Frame:
 class _Walker:
     """Walks the parsed tree in document order and feeds the builder."""
 
-    def __init__(self, builder: LayoutBuilder, frame: _Frame, to_user: S.Matrix, keepout_class: str):
+    def __init__(self, builder: LayoutBuilder, frame: _Frame, to_user: S.Matrix, keepout_class: str,
+                 marks_class: str | None = None):
         self.b = builder
         self.frame = frame
         self.to_user = to_user
         self.mark = keepout_class
+        self.marks = marks_class
 
     def run(self, doc: S.SVG) -> None:
         # (element, inside a keep-out group, inside a <use>, id given by that <use>)
@@ -344,13 +352,16 @@ class _Walker:
             elif isinstance(e, (S.Text, S.Image)):
                 self.b.ignore(f"<{attrs.get('tag', type(e).__name__.lower())}>")
 
-    def _marked(self, attrs: dict, group: bool = False) -> bool:
-        if self.mark in str(attrs.get("class", "")).split():
-            return True
-        if not group:
-            return False
-        names = (str(attrs.get("id", "")), str(attrs.get(INKSCAPE_LABEL, "")))
-        return any(n.lower().startswith(self.mark.lower()) for n in names)
+    def _marked(self, attrs: dict, group: bool = False) -> str | bool:
+        """The role the element's class (or a group's id or layer label) gives what it
+        holds: ``"mark"`` (an alignment mark), True (a keep-out) or False."""
+        names = (str(attrs.get("id", "")), str(attrs.get(INKSCAPE_LABEL, ""))) if group else ()
+        for role, cls in (("mark", self.marks), (True, self.mark)):
+            if cls is None:
+                continue
+            if cls in str(attrs.get("class", "")).split() or any(n.lower().startswith(cls.lower()) for n in names):
+                return role
+        return False
 
     def _shape(self, e: S.Shape, attrs: dict, keepout: bool, target_id: str | None) -> None:
         tag = str(attrs.get("tag") or type(e).__name__.lower())
@@ -359,7 +370,7 @@ class _Walker:
         if not all(math.isfinite(v) for v in (m.a, m.b, m.c, m.d, m.e, m.f)):
             self.b.fail(key, "transform is not finite")
         if keepout:
-            self._keepout(e, tag, key, m)
+            self._keepout(e, tag, key, m, "mark" if keepout == "mark" else "keep-out")
         elif tag == "circle":
             self._particle(attrs, key, m, target_id or None)
         elif tag == "line":
@@ -398,11 +409,11 @@ class _Walker:
         p, q = m.point_in_matrix_space((x1, y1)), m.point_in_matrix_space((x2, y2))
         self.b.rod(key, self.frame((p.x, p.y)), self.frame((q.x, q.y)), diameter, extension, target_id)
 
-    def _keepout(self, e: S.Shape, tag: str, key: str, m: S.Matrix) -> None:
+    def _keepout(self, e: S.Shape, tag: str, key: str, m: S.Matrix, what: str = "keep-out") -> None:
         if tag == "line":
-            self.b.fail(key, "a <line> cannot be a keep-out (it encloses no area); use a closed shape")
+            self.b.fail(key, f"a <line> cannot be a {what} (it encloses no area); use a closed shape")
         if tag not in KEEPOUT_TAGS:
-            self.b.ignore(f"<{tag}> in a keep-out group")
+            self.b.ignore(f"<{tag}> in a {what} group")
             return
         try:
             path = S.Path(e)
@@ -412,11 +423,11 @@ class _Walker:
             self.b.fail(key, f"cannot read the outline ({type(exc).__name__}: {exc})")
         outlines = _outlines(path, FLATTEN_NM / self.frame.scale)
         if not outlines:
-            self.b.fail(key, "keep-out shape has no outline")
+            self.b.fail(key, f"{what} shape has no outline")
         for points, closed in outlines:
             if not closed:
-                self.b.fail(key, "keep-out outline is not closed (end the path with Z)")
-            self.b.keepout(key, [self.frame(p) for p in points])
+                self.b.fail(key, f"{what} outline is not closed (end the path with Z)")
+            self.b.keepout(key, [self.frame(p) for p in points], what=what)
 
 
 def _count_shapes(elements: list) -> int:

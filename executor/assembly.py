@@ -10,6 +10,8 @@ drift estimator (:mod:`.estimators`), the belief, the full scan's references
 scans and moves are plan stubs (:mod:`.scan_steps`, :mod:`.motion_steps`,
 :mod:`.drift_steps`). Frames: the plan and the belief are in the layout frame (the frame
 of the first full scan); a layout point ``p`` is at ``p + offset(t)`` in the scanner frame.
+A layout with alignment marks is registered to that scan once the drift is bootstrapped
+and mapped into its frame (``_register``); the first plan carries the transform.
 """
 
 from __future__ import annotations
@@ -24,11 +26,13 @@ import numpy as np
 
 from nanoasm.cad.layout import Layout
 from nanoasm.planner import Operation, PlanOptions, Replanner
+from nanoasm.planner.alignment import in_scan_frame
 from nanoasm.world.cantilever import SEED_LEVER, Cantilever
 from nanoasm.world.environment import Environment
 from nanoasm.world.identify import identify
 
 from . import course as courses
+from .baselines import BaselineMaps
 from .belief import Belief
 from .context import RunContext
 from .course import Course
@@ -53,12 +57,15 @@ class Assembly:
     checkpoint."""
 
     def __init__(self, layout: Layout, options: ExecOptions | None = None,
-                 plan_options: PlanOptions | None = None, *, lever: Cantilever = SEED_LEVER):
-        self.layout = layout
+                 plan_options: PlanOptions | None = None, *, lever: Cantilever = SEED_LEVER,
+                 source: str | None = None, baselines: BaselineMaps | None = None):
+        self.layout = layout                     # in the scan's frame once registered (_register)
+        self.source = source                     # the layout's file, named by a failed registration
         self.options = options or ExecOptions()
         self.plan_options = plan_options or PlanOptions()
         self.strategy = self.options.strategy
-        self.lever = lever
+        self.lever = lever                       # the compensation's constants (the instrument's, calibrated)
+        self.baselines = baselines               # the detector's A(i, j), B(i, j); None: free air per push
         self.replanner = Replanner(layout, self.plan_options)
         self.course = Course()
         self.ctx: RunContext | None = None       # set when the run starts or resumes
@@ -95,7 +102,8 @@ class Assembly:
         origin = 0.5 * (np.asarray(config.xy_range, float) - region_side)
         epoch = yield Msg("clock")
         drift = estimator_for(self.strategy, origin, epoch, self.options)
-        ctx = self.ctx = RunContext(config, self.options, drift, None, References())
+        ctx = self.ctx = RunContext(config, self.options, drift, None, References(), baselines=self.baselines)
+        yield Msg("event", (self._lever_line(),))
         yield from travel_to(ctx, origin + region_side / 2)
         t0 = yield Msg("clock")
         yield Msg("event", (f"full scan {pixels} x {pixels} px of {region_side:g} nm",))
@@ -128,10 +136,10 @@ class Assembly:
         # the drift velocity first: the plan needs the objects where they are, not where
         # the full scan's rows put them (hundreds of nm apart over a frame)
         yield from bootstrap(ctx)
-
         def row_time(y: float) -> float:
             return t0 + (min(max(y * pixels / region_side, 0.0), pixels - 1.0) + 0.5) * line_time
 
+        yield from self._register(env, row_time)
         # the obstacles too (electrodes: a slot beside one is planned against where it is)
         ctx.belief.obstacles = unskewed_obstacles(env.obstacles, drift, row_time)
         w0 = time.perf_counter()
@@ -150,12 +158,47 @@ class Assembly:
         ledger.wall["execute"] += time.perf_counter() - t_wall - ledger.wall["identify"] - ledger.wall["plan"]
         return (yield from self._execute(ops, 0, 0, {}))
 
+    def _lever_line(self) -> str:
+        lv, maps = self.lever, self.baselines
+        base = (f"{maps.pixels} x {maps.pixels} baseline maps" if maps is not None
+                else "baselines measured in free air before each push")
+        return (f"lever: K_n {lv.normal_gain:.4g} nm/V, C1 {lv.c1:.3g} nm/V, C2 {lv.c2:.4g} nm/V, k_l K_l / h "
+                f"{lv.lateral_gain:.4g} nN/V, alpha {lv.crosstalk:.3g}; {base}")
+
+    def _register(self, env: Environment, row_time) -> Procedure:
+        """A layout with marks registered to the obstacles of the full scan, each corner
+        moved by the drift of its row's time (``row_time(y)``; known once the drift is
+        bootstrapped): from here on the run works in the scan's frame
+        (:func:`~nanoasm.planner.alignment.in_scan_frame`; a failure is one InputError
+        naming the layout's file)."""
+        drift = self.ctx.drift
+
+        def unskewed(p) -> tuple[float, float]:
+            x, y = drift.unskew(np.asarray(p, float), row_time(p[1]) - drift.epoch)
+            return float(x), float(y)
+
+        layout, alignment = in_scan_frame(self.layout, env, self.plan_options.align, moved=unskewed,
+                                          resolution=self.options.pixel_size, source=self.source)
+        if alignment is not None:
+            self.registered(alignment.transform, layout)
+            yield Msg("event", (alignment.line(),))
+            yield Msg("emit", ("registration", alignment.to_doc()))
+
+    def registered(self, transform, layout: Layout | None = None) -> None:
+        """Work in the scan's frame from here on: the layout mapped by ``transform`` (the
+        registration of its marks; ``layout``, when given, is the layout so mapped)."""
+        if transform is None or self.layout.registration is not None:
+            return
+        self.layout = layout if layout is not None else self.layout.mapped(transform, self.layout.area)
+        self.replanner = Replanner(self.layout, self.plan_options)
+
     def resume(self, config, state: dict) -> Procedure:
         """Go on with a run from a checkpoint's ``state`` (see :func:`.checkpoints.checkpoint`)
         on the same instrument: no full scan, no new plan; the next push scans its object
         before it as every push does, the drift estimate's uncertainty having grown with
         the time the run stood still."""
         ops, done, corrections = restore(self, config, state)
+        self.ctx.baselines = self.baselines
         t = yield Msg("clock")
         self.ctx.drift.resumed(t - float(state["t"]))
         yield Msg("event", (f"resumed from the checkpoint after push {self.ctx.ledger.counts['pushes']} "

@@ -57,6 +57,7 @@ def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]
         raise ValueError(f"the run used strategy {st['strategy']!r}, not {asm.strategy.value!r}")
     asm.env = environment_from_dict(st["env"], "checkpoint")
     asm.first_plan = plan_from_dict(st["first_plan"], "checkpoint")
+    asm.registered(asm.first_plan.registration)     # a layout registered by its marks: the scan's frame
     rp = asm.replanner
     rp.plan = plan_from_dict(st["plan"], "checkpoint") if st["plan"] else None
     rp.base = environment_from_dict(st["base"], "checkpoint") if st["base"] else None

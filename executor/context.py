@@ -10,7 +10,6 @@ Frames: the belief is in the layout frame; a layout point ``p`` lies at
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -43,7 +42,9 @@ class RunContext:
     in the layout frame and ``env_objects`` what it showed (neither kept in
     checkpoints: a run log holds them). ``corrected``: a relocalisation moved believed
     objects since the plan was last made (the plan is made again after the push).
-    ``pivots``: every pushed rod's pose-and-pivot-offset filter."""
+    ``pivots``: every pushed rod's pose-and-pivot-offset filter. ``baselines``: the
+    calibration's free-air maps A(i, j), B(i, j) the push monitor compensates with (not in
+    checkpoints: the instrument's, given again on resuming)."""
 
     config: Any                         # the instrument's InstrumentConfig
     options: ExecOptions
@@ -63,6 +64,7 @@ class RunContext:
     env_objects: tuple = ()
     corrected: bool = False
     pivots: Pivots = field(default_factory=Pivots)
+    baselines: Any = None               # the detector's BaselineMaps (eq. 3.28-3.29); None: free air
 
     def __post_init__(self) -> None:
         if self.scan_opts is None:

@@ -133,6 +133,8 @@ def layout_scene(layout):
         entities.append(_entity(f"slot:{tg.id}", timestamp(0), lines=[loop(ring, target)], texts=[label]))
     for i, k in enumerate(layout.keepouts, 1):
         entities.append(_entity(f"keepout:{i}", timestamp(0), lines=[loop(k.polygon, COLOURS["keepout"])]))
+    for i, k in enumerate(layout.marks, 1):       # alignment marks: keep-outs too
+        entities.append(_entity(f"mark:{i}", timestamp(0), lines=[loop(k.polygon, COLOURS["keepout"])]))
     return SceneUpdate(entities=entities)
 
 

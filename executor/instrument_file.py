@@ -1,6 +1,9 @@
 """The instrument file: how a hardware backend reaches the microscope.
 
-``format = "nanoasm.instrument/1"``, in TOML or JSON, with three tables:
+``format = "nanoasm.instrument/1"``, in TOML or JSON, with ``backend = "nidaq"`` (the
+default: an NI DAQ card, :mod:`nanoasm.executor.nidaq`) or ``backend = "nanonis"`` (a
+Nanonis controller over its TCP interface, :mod:`nanoasm.executor.nanonis`) and these
+tables:
 
 ``[scanner]``
     The :class:`~nanoasm.instrument.InstrumentConfig` keys, read exactly as a
@@ -12,11 +15,23 @@
     (``"ao0"``...); ``[daq.ai]`` ``normal`` (S_n), ``lateral`` (S_l), ``height`` (the
     controller's topography signal), ``terminal``, ``signal_range``, ``height_range``;
     and the stream: ``chunk_size`` (samples per refill), ``lead_chunks`` (refills queued
-    ahead of the DAC), ``buffer_size`` (samples per channel), ``timeout`` (s).
+    ahead of the DAC), ``buffer_size`` (samples per channel), ``timeout`` (s). Backend
+    ``"nidaq"`` only.
+``[nanonis]``
+    The Nanonis controller, backend ``"nanonis"`` only: ``host``, ``port``, ``timeout``
+    (s), the signal indexes ``normal`` (S_n) and ``lateral`` (S_l), ``scan_channel`` (the
+    Z signal's scan slot), ``centre`` (Nanonis XY of the travel's centre, nm),
+    ``setpoint``, ``leg``, ``lifted_leg`` and ``z_step`` (nm); see
+    :mod:`nanoasm.executor.nanonis_config`.
 ``[imaging]``
     Scans under the controller's Z feedback: ``line_speed`` and ``full_scan_speed``
     (nm/s), ``settle`` (s held engaged before a scan) and ``height_nm_per_volt``
-    (required; negative flips the sign of the height signal).
+    (required for ``"nidaq"``; negative flips the sign of the height signal; not for
+    ``"nanonis"``, whose heights are its Z signal in metres).
+``[cantilever]``, ``[friction]``, ``[baseline]``, ``[calibration]``
+    The lever the run compensates with, its tip-substrate friction, the detector's
+    free-air baseline maps, and where ``nanoasm calibrate`` measures them
+    (:mod:`nanoasm.executor.lever_file`); ``nanoasm run`` needs ``[cantilever]``.
 
 No ``[scaling]`` table: AO volts are the scanner's DAC volts (``[scanner]
 nm_per_volt`` already maps them to nm) and the height signal's scale is in
@@ -39,13 +54,22 @@ from nanoasm.param import ParamError, param, validate
 from nanoasm.schema import Table, check_format
 from nanoasm.world.param_spec import from_table
 
+from .calibration import CalibrationSites
+from .lever_file import InstrumentLever, lever_from_tables, sites_from_table
+from .nanonis_config import NanonisConfig, nanonis_from_table
 from .strategy import ExecOptions
 
 FORMAT = "nanoasm.instrument/1"
 
+#: The lever's tables (:mod:`.lever_file`): optional in the file, ``[cantilever]`` needed by a run.
+LEVER_TABLES = ("cantilever", "friction", "baseline", "calibration")
+
 #: ``[scanner]`` keys an instrument file must state (the rest keep their defaults).
 SCANNER_REQUIRED = ("xy_range", "z_range", "nm_per_volt", "dac_bits", "volt_range", "sample_rate",
                     "max_speed")
+
+#: ``backend`` values: the hardware an instrument file drives.
+BACKENDS = ("nidaq", "nanonis")
 
 #: ``[daq.ai] terminal`` values and the ``nidaqmx.constants.TerminalConfiguration`` member of each.
 TERMINALS = {"differential": "DIFF", "rse": "RSE", "nrse": "NRSE", "pseudodifferential": "PSEUDO_DIFF"}
@@ -166,10 +190,14 @@ class InstrumentFile:
     """A loaded instrument file; build it with :func:`load_instrument_config`."""
 
     scanner: InstrumentConfig
-    daq: DaqConfig
+    daq: DaqConfig | None       # backend "nidaq"
     imaging: ImagingConfig
     name: str = ""
     source: str = ""
+    backend: str = "nidaq"
+    nanonis: NanonisConfig | None = None    # backend "nanonis"
+    lever: InstrumentLever | None = None    # [cantilever], [friction], [baseline] (lever_file)
+    calibration: CalibrationSites | None = None     # [calibration]: where nanoasm calibrate measures
 
     def __post_init__(self) -> None:
         s = self.scanner
@@ -177,7 +205,10 @@ class InstrumentFile:
             if getattr(self.imaging, key) > s.max_speed:
                 raise ParamError(f"imaging.{key}", f"must be at most scanner.max_speed ({s.max_speed:g} nm/s), "
                                  f"got {getattr(self.imaging, key):g}")
-        refill = self.daq.chunk_size / s.sample_rate
+        if (self.daq is None) != (self.backend != "nidaq") or (self.nanonis is None) != (self.backend != "nanonis"):
+            raise ParamError("backend", f"{self.backend!r} needs its own table ([daq] for 'nidaq', [nanonis] for "
+                             "'nanonis') and no other")
+        refill = self.daq.chunk_size / s.sample_rate if self.daq is not None else math.inf
         if refill < MIN_REFILL:
             least = math.ceil(MIN_REFILL * s.sample_rate)
             raise ParamError("daq.chunk_size", f"{self.daq.chunk_size} samples is {refill * 1e3:.3g} ms at "
@@ -198,17 +229,34 @@ def instrument_from_dict(data: dict, source: str | None = None) -> InstrumentFil
         t.fail("timing", "not an instrument file table: [timing] is the simulated instrument's, in a scene; "
                          f"a run scans at [imaging]'s speeds and pushes at {ExecOptions().push_speed:g} nm/s "
                          "(ExecOptions.push_speed)")
-    t.check_keys(required=("format", "scanner", "daq", "imaging"), optional=("name",))
+    t.check_keys(required=("format", "scanner", "imaging"), optional=("name", "backend", "daq", "nanonis",
+                                                                     *LEVER_TABLES))
     name = t.string("name", "")
+    backend = t.string("backend", "nidaq", choices=BACKENDS)
     st = t.table("scanner")
     st.check_keys(required=SCANNER_REQUIRED, optional=[f.name for f in dataclasses.fields(InstrumentConfig)])
     scanner = from_table(InstrumentConfig, st)
-    daq = _daq(t.table("daq"))
-    imaging = from_table(ImagingConfig, t.table("imaging"))
+    daq, nanonis, imaging = _backend_tables(t, backend)
+    lever, sites = lever_from_tables(t), sites_from_table(t, scanner)
     try:
-        return InstrumentFile(scanner, daq, imaging, name, source or "")
+        return InstrumentFile(scanner, daq, imaging, name, source or "", backend=backend, nanonis=nanonis,
+                              lever=lever, calibration=sites)
     except ParamError as e:
         raise InputError(source, e.key, e.problem) from None
+
+
+def _backend_tables(t: Table, backend: str) -> tuple[DaqConfig | None, NanonisConfig | None, ImagingConfig]:
+    """``[daq]`` (NI) or ``[nanonis]``, the other refused, and ``[imaging]``."""
+    own, other = ("daq", "nanonis") if backend == "nidaq" else ("nanonis", "daq")
+    if other in t:
+        t.fail(other, f"not a table of backend = {backend!r} (its hardware is in [{own}])")
+    it = t.table("imaging")
+    if backend == "nidaq":
+        return _daq(t.table("daq")), None, from_table(ImagingConfig, it)
+    if "height_nm_per_volt" in it:
+        it.fail("height_nm_per_volt", "not used by backend 'nanonis': its heights are the Z signal in metres")
+    imaging = from_table(ImagingConfig, Table({**it.data, "height_nm_per_volt": 1e9}, it.source, it.path))
+    return None, nanonis_from_table(t.table("nanonis")), imaging
 
 
 def _daq(t: Table) -> DaqConfig:
@@ -251,5 +299,5 @@ def load_instrument_config(path: str | os.PathLike) -> InstrumentFile:
     return instrument_from_dict(read_document(path), str(path))
 
 
-__all__ = ["FORMAT", "SCANNER_REQUIRED", "TERMINALS", "DaqConfig", "ImagingConfig", "InstrumentFile",
+__all__ = ["BACKENDS", "FORMAT", "SCANNER_REQUIRED", "TERMINALS", "DaqConfig", "ImagingConfig", "InstrumentFile",
            "instrument_from_dict", "load_instrument_config"]

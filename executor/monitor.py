@@ -1,8 +1,11 @@
 """Contact monitoring during a push, from the photodiode signals (seed 3.5, Fig. 3.20).
 
-Signals are compensated as eq. 3.28 with baselines measured in free air just before the
-push (the substrate-reflection and piezo-bow baselines at the push's place) and the
-normal-to-lateral cross-talk α: ``S̄n = S_n − S_n0``, ``S̄l = S_l − S_l0 − α S̄n``.
+Signals are compensated as eq. 3.28 with the calibration's baseline maps A(i, j), B(i, j)
+at each sample's scanner position (eq. 3.29, :class:`~.baselines.BaselineMaps`) and the
+normal-to-lateral cross-talk α: ``S̄n = S_n − A(i, j)``, ``S̄l = S_l − B(i, j) − α S̄n``.
+Without maps, the baselines are scalars measured in free air just before the push
+(``S_n0``, ``S_l0``), at the travel height: the substrate's reflection there is not the
+one in contact (seed Fig. 3.13), which biases S̄n.
 Forces follow eq. 3.11: ``F_n = k K_n S̄n`` and the lateral force ``(k_l K_l / h) S̄l``.
 
 * contact: S̄n reaches half the preload's deflection;
@@ -18,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from nanoasm.world.cantilever import SEED_LEVER, Cantilever
+
+from .baselines import BaselineMaps
 
 #: Consecutive samples a condition must hold to count (rejects single-sample noise).
 HOLD = 3
@@ -50,8 +55,9 @@ class PushMonitor:
     """Watches the signals of one push, block by block."""
 
     def __init__(self, preload: float, *, lever: Cantilever = SEED_LEVER, force_limit: float = 300.0,
-                 slip_fraction: float = 0.4):
+                 slip_fraction: float = 0.4, baselines: BaselineMaps | None = None):
         self.lever = lever
+        self.baselines = baselines
         self.level = preload / lever.normal_gain          # S̄n in contact at the preload, V
         self.force_limit = force_limit
         self.slip_fraction = slip_fraction
@@ -62,25 +68,29 @@ class PushMonitor:
         self.contact_samples = 0
 
     def set_baseline(self, s_n: np.ndarray, s_l: np.ndarray) -> None:
-        """Free-air baseline from samples with the tip lifted (eq. 3.28's A and B here)."""
-        if len(s_n):
+        """Free-air baseline from samples with the tip lifted (eq. 3.28's A and B here),
+        unless the maps give them."""
+        if len(s_n) and self.baselines is None:
             self.s_n0 = float(np.median(s_n))
             self.s_l0 = float(np.median(s_l))
 
-    def compensated(self, s_n: np.ndarray, s_l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def compensated(self, s_n: np.ndarray, s_l: np.ndarray, xy=None) -> tuple[np.ndarray, np.ndarray]:
+        """``(S̄n, S̄l)`` (eq. 3.28) of samples taken at scanner positions ``xy`` ``(n, 2)`` nm."""
+        if self.baselines is not None and xy is not None:
+            return self.baselines.compensate(s_n, s_l, xy, self.lever.crosstalk)
         sn = np.asarray(s_n, float) - self.s_n0
         sl = np.asarray(s_l, float) - self.s_l0 - self.lever.crosstalk * sn
         return sn, sl
 
-    def forces(self, s_n, s_l) -> tuple[np.ndarray, np.ndarray]:
-        """Normal and lateral force, nN (eq. 3.11 with the compensated signals)."""
-        sn, sl = self.compensated(s_n, s_l)
+    def forces(self, s_n, s_l, xy=None) -> tuple[np.ndarray, np.ndarray]:
+        """Normal and lateral force, nN (eq. 3.33-3.34 with the compensated signals)."""
+        sn, sl = self.compensated(s_n, s_l, xy)
         return self.lever.spring_constant * self.lever.normal_gain * sn, self.lever.lateral_gain * sl
 
-    def check(self, s_n: np.ndarray, s_l: np.ndarray) -> Verdict:
-        """Verdict on the push samples of one block (in order)."""
-        sn, _ = self.compensated(s_n, s_l)
-        _, f_l = self.forces(s_n, s_l)
+    def check(self, s_n: np.ndarray, s_l: np.ndarray, xy=None) -> Verdict:
+        """Verdict on the push samples of one block (in order), taken at scanner ``xy``."""
+        sn, sl = self.compensated(s_n, s_l, xy)
+        f_l = self.lever.lateral_gain * sl
         if f_l.size:
             self.peak = max(self.peak, float(np.max(np.abs(f_l))))
         start = 0

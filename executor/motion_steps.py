@@ -101,7 +101,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     pending = ctx.drift.pending_travel(dac, current, ctx.config)
     if pending:     # the travel to the push creeps while the push runs: follow it
         dac = plan_dac(moves, cfg, current, t0=t0, drift=ctx.drift.predicted(t0, pending), lever=lever)
-    monitor = PushMonitor(cfg.preload, lever=lever, force_limit=ctx.options.force_limit)
+    monitor = PushMonitor(cfg.preload, lever=lever, force_limit=ctx.options.force_limit, baselines=ctx.baselines)
     verdict = None
     n_push = n_other = 0
     ends = {TRAVEL: None, PUSH: None}
@@ -120,7 +120,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
         n_push += int(pushing.sum())
         n_other += int((~pushing).sum())
         if pushing.any():
-            v = monitor.check(block.s_n[pushing], block.s_l[pushing])
+            v = monitor.check(block.s_n[pushing], block.s_l[pushing], cfg.codes_to_nm(chunk.codes[pushing])[:, :2])
             if v.failed:
                 verdict = v
                 break

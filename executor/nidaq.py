@@ -32,13 +32,12 @@ from typing import Self
 
 import numpy as np
 
-from nanoasm.errors import InstrumentLimitError
 from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock
-from nanoasm.param import number
 
 from .feedback_scan import Raster, bin_mean, lift_in_place, park_path, scan_line_plan
 from .instrument_file import InstrumentFile
 from .nidaq_stream import DaqDriverNotFound, DaqStream, NiApi, NiDaqError
+from .scan_args import count, scan_square, scanner_xy
 
 
 class NiDaqInstrument:
@@ -62,6 +61,8 @@ class NiDaqInstrument:
     def __init__(self, config: InstrumentFile, *, nidaqmx_module=None):
         if not isinstance(config, InstrumentFile):
             raise TypeError(f"config must be an InstrumentFile, got {type(config).__name__}")
+        if config.daq is None:
+            raise TypeError(f"the instrument file is for backend = {config.backend!r}, not 'nidaq'")
         self.file = config
         self._api = NiApi.load(nidaqmx_module)
         self._last = config.scanner.rest_codes()
@@ -99,9 +100,10 @@ class NiDaqInstrument:
     def scan_line(self, a: tuple[float, float], b: tuple[float, float], n: int) -> np.ndarray:
         """Heights (nm) at ``n`` points from ``a`` to ``b``: travel lifted, engage, settle,
         scan at ``[imaging] line_speed`` under the controller's feedback, lift."""
-        n = _count("n", n)
+        n = count("n", n)
         im = self.file.imaging
-        plan = scan_line_plan(self.config, self._last, self._xy("a", a), self._xy("b", b), n,
+        plan = scan_line_plan(self.config, self._last, scanner_xy(self.config, "a", a),
+                              scanner_xy(self.config, "b", b), n,
                               im.line_speed, self._settle_samples())
         _, ai = self._play(plan.codes)
         return bin_mean(ai[2, plan.line] * im.height_nm_per_volt, plan.bins, n)
@@ -110,8 +112,8 @@ class NiDaqInstrument:
         """A ``pixels`` x ``pixels`` image of the square of side max(width, height) at the
         region's lower-left corner (default: the largest square of the XY range at the
         origin), traced and retraced at ``[imaging] full_scan_speed``; the tip ends lifted."""
-        pixels = _count("pixels", pixels)
-        x0, y0, side = self._square(region)
+        pixels = count("pixels", pixels)
+        x0, y0, side = scan_square(self.config, region)
         im = self.file.imaging
         raster = Raster(self.config, x0, y0, side, pixels, im.full_scan_speed)
         self._play(raster.approach(self._last, self._settle_samples()))
@@ -188,40 +190,6 @@ class NiDaqInstrument:
 
     def _settle_samples(self) -> int:
         return round(self.file.imaging.settle * self.config.sample_rate)
-
-    def _xy(self, name: str, p) -> np.ndarray:
-        try:
-            arr = np.asarray(p, float)
-        except (TypeError, ValueError):
-            raise ValueError(f"{name} must be two finite numbers, got {p!r}") from None
-        if arr.shape != (2,) or not np.all(np.isfinite(arr)):
-            raise ValueError(f"{name} must be two finite numbers, got {p!r}")
-        hi = self.config.upper[:2]
-        if np.any(arr < 0) or np.any(arr > hi):
-            raise InstrumentLimitError(f"{name} = ({arr[0]:g}, {arr[1]:g}) nm lies outside the scanner "
-                                       f"range [0, {hi[0]:g}] x [0, {hi[1]:g}] nm; nothing sent")
-        return arr
-
-    def _square(self, region: Region | None) -> tuple[float, float, float]:
-        xr, yr = self.config.xy_range
-        if region is None:
-            return 0.0, 0.0, min(xr, yr)
-        if len(region) != 4:
-            raise ValueError(f"region must be four numbers (x0, y0, x1, y1), got {region!r}")
-        x0, y0, x1, y1 = (number(f"region[{i}]", v) for i, v in enumerate(region))
-        if not (x1 > x0 and y1 > y0):
-            raise ValueError(f"region must have x1 > x0 and y1 > y0, got {region!r}")
-        side = max(x1 - x0, y1 - y0)
-        if x0 < 0 or y0 < 0 or x0 + side > xr or y0 + side > yr:
-            raise InstrumentLimitError(f"the {side:g} nm square at ({x0:g}, {y0:g}) leaves the scanner range "
-                                       f"[0, {xr:g}] x [0, {yr:g}] nm; nothing sent")
-        return x0, y0, side
-
-
-def _count(name: str, n) -> int:
-    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
-        raise ValueError(f"{name} must be an integer of at least 2, got {n!r}")
-    return int(n)
 
 
 __all__ = ["DaqDriverNotFound", "NiDaqError", "NiDaqInstrument"]

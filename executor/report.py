@@ -1,4 +1,7 @@
-"""Report v1 (``nanoasm.report/1``): what a dry-run or run did, with JSON round-trip."""
+"""Report v1 (``nanoasm.report/1``): what a dry-run or run did, with JSON round-trip.
+
+Targets and objects are in the layout's own frame; a layout registered by its marks
+adds ``registration``, the transform from that frame to the scan's."""
 
 from __future__ import annotations
 
@@ -6,6 +9,7 @@ import os
 from dataclasses import dataclass, fields
 
 from nanoasm.bodies import Body, body_from_table, check_unique_ids
+from nanoasm.cad.frame import Similarity, similarity_from_table
 from nanoasm.fileio import dumps_json, read_document, write_atomic
 from nanoasm.planner.plan import Assignment, Unfilled, assignments_from, unfilled_from
 from nanoasm.schema import Table, check_format
@@ -72,6 +76,7 @@ class Report:
     instrument_time: InstrumentTime = InstrumentTime()
     wall_time: WallTime = WallTime()
     slots: tuple[SlotVerdict, ...] = ()
+    registration: Similarity | None = None      # the layout's registration by its marks
 
     def to_dict(self) -> dict:
         return {
@@ -83,6 +88,7 @@ class Report:
             "pushed": list(self.pushed),
             "unfilled": [u.to_dict() for u in self.unfilled],
             "slots": [v.to_dict() for v in self.slots],
+            **({} if self.registration is None else {"registration": self.registration.to_dict()}),
             "counts": _record_dict(self.counts),
             "instrument_time": _record_dict(self.instrument_time),
             "wall_time": _record_dict(self.wall_time),
@@ -112,7 +118,7 @@ def report_from_dict(data: dict, source: str | None = None) -> Report:
     t = Table(data, source)
     keys = ["format", "scene", "layout", "seed", "targets", "initial_objects", "final_objects",
             "assignment", "pushed", "unfilled", "counts", "instrument_time", "wall_time"]
-    t.check_keys(required=keys, optional={"slots"})
+    t.check_keys(required=keys, optional={"slots", "registration"})
     pushed = t.array("pushed")
     for i, p in enumerate(pushed, start=1):
         if not isinstance(p, str) or not p:
@@ -131,6 +137,7 @@ def report_from_dict(data: dict, source: str | None = None) -> Report:
         instrument_time=_record(t, "instrument_time", InstrumentTime, integer=False),
         wall_time=_record(t, "wall_time", WallTime, integer=False),
         slots=verdict_from_table(t) if "slots" in data else (),
+        registration=None if "registration" not in data else similarity_from_table(t.table("registration")),
     )
 
 

@@ -4,6 +4,7 @@ harness's business)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from nanoasm.planner import Plan
 from nanoasm.planner.plan import Assignment, Unfilled
@@ -33,6 +34,7 @@ class RunSummary:
     origin: tuple[float, float] = (0.0, 0.0)   # layout origin in the scanner frame at the epoch
     purposes: dict[str, float] = field(default_factory=dict)   # drift measurements' instrument s
     slots: tuple = ()             # the run's verdict on every slot (executor.verdict.SlotVerdict)
+    registration: Any = None      # the layout's registration by its marks (cad.frame.Similarity), if any
 
     def to_doc(self) -> dict:
         """What the run did, for the run log."""
@@ -60,4 +62,4 @@ def summary(asm) -> RunSummary:
     return RunSummary(asm.env, asm.first_plan, ctx.belief, tuple(assignment), tuple(unfilled), led.pushed,
                       led.count(), dict(led.times), dict(led.wall), led.drift, led.failures, drift.epoch,
                       (float(drift.origin[0]), float(drift.origin[1])), dict(led.purposes),
-                      tuple(getattr(asm, "slots", ())))
+                      tuple(getattr(asm, "slots", ())), asm.layout.registration)

@@ -139,15 +139,19 @@ def _read_layout(path: Path, options: dict):
     return layout
 
 
+MarksLayer = Annotated[Optional[str], typer.Option(metavar="LAYER", help="Alignment marks ([[mark]]): an SVG "
+                       "class or group name, a GDSII LAYER/DATATYPE, a DXF layer (default: none).")]
+
+
 def _importer_options(scale, cell, rod_diameter, area, particle_layer, rod_layer, keepout_layer,
-                      area_layer, keepout_class) -> dict:
+                      area_layer, keepout_class, marks_layer=None) -> dict:
     return dict(
         scale=scale, cell=cell, rod_diameter=rod_diameter, area=area,
         particle_layer=_parse_layer(particle_layer, "--particle-layer"),
         rod_layer=_parse_layer(rod_layer, "--rod-layer"),
         keepout_layer=_parse_layer(keepout_layer, "--keepout-layer"),
         area_layer=_parse_layer(area_layer, "--area-layer"),
-        keepout_class=keepout_class,
+        keepout_class=keepout_class, marks_layer=marks_layer,
     )
 
 
@@ -160,10 +164,11 @@ def layout_check(
     keepout_layer: Annotated[Layer, _layer_option("keep-outs", "3/0")] = None,
     area_layer: Annotated[Layer, _layer_option("the working area", "0/0")] = None,
     keepout_class: Annotated[Optional[str], typer.Option(help="SVG class of keep-outs (default keepout).")] = None,
+    marks_layer: MarksLayer = None,
 ) -> None:
     """Validate a layout and print a summary."""
     opts = _importer_options(scale, cell, rod_diameter, area, particle_layer, rod_layer,
-                             keepout_layer, area_layer, keepout_class)
+                             keepout_layer, area_layer, keepout_class, marks_layer)
     layout = _read_layout(file, opts)
     print(f"{file}: ok: {layout.summary()}")
 
@@ -178,13 +183,14 @@ def layout_convert(
     keepout_layer: Annotated[Layer, _layer_option("keep-outs", "3/0")] = None,
     area_layer: Annotated[Layer, _layer_option("the working area", "0/0")] = None,
     keepout_class: Annotated[Optional[str], typer.Option(help="SVG class of keep-outs (default keepout).")] = None,
+    marks_layer: MarksLayer = None,
 ) -> None:
     """Convert a CAD drawing (or a TOML/JSON layout) into a validated layout file."""
     if output.suffix.lower() not in NATIVE:
         raise InputError(str(output), None, "output must end in .toml or .json")
     _outputs_apart([("-o", output)], [("FILE", file)])
     opts = _importer_options(scale, cell, rod_diameter, area, particle_layer, rod_layer,
-                             keepout_layer, area_layer, keepout_class)
+                             keepout_layer, area_layer, keepout_class, marks_layer)
     layout = _read_layout(file, opts)
     layout.save(output)
     print(f"{output}: written: {layout.summary()}")
@@ -222,14 +228,29 @@ def scene_random(
                      help="Steady drift velocity, nm/s (default: the world's own).")] = None,
     random_walk: Annotated[float, typer.Option(help="Random walk of the drift about its course, nm/sqrt(s).")] = 0.1,
     height_noise: Annotated[Optional[float], typer.Option(help="Height noise, nm RMS.")] = None,
+    lever_spread: Annotated[float, typer.Option(help="Draw the lever's k, K_n, C1, C2, lateral gain and alpha "
+                                                     "within this fraction of the seed's lever (0: nominal).")] = 0.2,
+    layout: Annotated[Optional[Path], typer.Option("--layout", help="Also write a layout (.toml or .json) of "
+                                                   "--slots slots that this scene can fill.")] = None,
+    slots: Annotated[Optional[int], typer.Option(help="Slots of --layout: the sizes of the scene's particles "
+                                                      "(then rods of L/d below 15) nearest its centre, "
+                                                      "clustered about it on free ground.")] = None,
 ) -> None:
-    """Generate a valid random scene (never an overlap)."""
+    """Generate a valid random scene (never an overlap), and with --layout a layout it can fill."""
     from nanoasm.world.random_scene import SceneSpec, random_scene
     from nanoasm.world.params import DriftParams, NoiseParams
 
     if output.suffix.lower() not in NATIVE:
         raise InputError(str(output), None, "output must end in .toml or .json")
     _outputs_apart([("-o", output)], [])
+    if layout is not None:
+        if layout.suffix.lower() not in NATIVE:
+            raise InputError(str(layout), "--layout", "must end in .toml or .json")
+        if slots is None:
+            raise InputError(None, "--slots", "is required with --layout: how many slots the layout has")
+        _outputs_apart([("--layout", layout)], [("-o", output)])
+    elif slots is not None:
+        raise InputError(None, "--slots", "goes with --layout OUT.toml (the layout to write)")
     if seed < 0:
         raise InputError(None, "--seed", f"must not be negative, got {seed}")
     drift_params = None if drift is None else _options(DriftParams, {"velocity": "--drift"},
@@ -240,10 +261,21 @@ def scene_random(
         area=area, particles=particles, rods=rods, obstacles=obstacles,
         particle_diameter=particle_diameter, rod_length=rod_length, rod_diameter=rod_diameter,
         obstacle_size=obstacle_size, obstacle_height=obstacle_height, gap=gap, drift=drift_params, noise=noise,
+        lever_spread=lever_spread,
     )
     scene = random_scene(spec, seed)
+    matching = None
+    if layout is not None:
+        from nanoasm.cad.layout import layout_from_dict
+        from nanoasm.world.random_layout import matching_layout
+
+        matching = layout_from_dict(matching_layout(scene, slots, gap=gap, name=f"random-{seed}"),
+                                    "generated layout")
     scene.save(output)
     print(f"{output}: written: {scene.summary()}")
+    if matching is not None:
+        matching.save(layout)
+        print(f"{layout}: written: {matching.summary()}")
 
 
 def _number(option: str, value: float, **limits) -> None:
@@ -317,6 +349,19 @@ def identify_cmd(
 
 # -- planning -------------------------------------------------------------------------
 
+NoAlign = Annotated[bool, typer.Option("--no-align", help="Do not register a layout with [[mark]]s to the scan: "
+                                                         "take the layout's frame for the scan's.")]
+AlignScale = Annotated[bool, typer.Option("--align-scale", help="Register a layout with [[mark]]s with the scale "
+                                                               "free too (by default rotation and translation).")]
+
+
+def _align(no_align: bool, align_scale: bool) -> str:
+    """``PlanOptions.align`` from ``--no-align`` and ``--align-scale``."""
+    if no_align and align_scale:
+        raise InputError(None, "--align-scale", "does not go with --no-align")
+    return "none" if no_align else "similarity" if align_scale else "rigid"
+
+
 @app.command("plan")
 def plan_cmd(
     layout_file: Annotated[Path, typer.Argument(metavar="LAYOUT", help="Layout (TOML/JSON).")],
@@ -331,6 +376,8 @@ def plan_cmd(
     tip_radius: Annotated[float, typer.Option(help="Tip radius, nm.")] = 10.0,
     margin: Annotated[float, typer.Option(help="Clearance beyond footprints and tip, nm.")] = 20.0,
     seed: Annotated[int, typer.Option(help="Seed of the planners' sampling.")] = 0,
+    no_align: NoAlign = False,
+    align_scale: AlignScale = False,
 ) -> None:
     """Assign objects to slots and plan the pushes (plan v1)."""
     from nanoasm.cad.layout import load_layout
@@ -345,14 +392,17 @@ def plan_cmd(
     _outputs_apart([("-o", output)], [("LAYOUT", layout_file), ("--env", env_file), ("--scan", scan)])
     _check_planner(planner)
     options = _options(PlanOptions, tip_radius=tip_radius, margin=margin, planner=planner, budget=budget,
-                       seed=seed)
+                       seed=seed, align=_align(no_align, align_scale))
     layout = load_layout(layout_file)
+    resolution = None
     if env_file is not None:
         env = load_environment(env_file)
     else:
         from nanoasm.world.identify import identify
 
-        env = identify(_read_scan(scan, pixel_size), tip_radius=tip_radius)
+        image = _read_scan(scan, pixel_size)
+        env, resolution = identify(image, tip_radius=tip_radius), image.pixel_size
+    layout = _in_scan_frame(layout, env, options.align, resolution, str(layout_file))
     plan, stats = _with_progress("planning", lambda progress: plan_assembly(layout, env, options, progress))
     plan.save(output)
     print(f"{output}: written: {len(plan.assignment)} of {len(layout.targets)} slot(s) assigned, "
@@ -370,6 +420,17 @@ def plan_cmd(
         print(f"  … and {more} more unfilled (see {output})")
 
 
+
+
+def _in_scan_frame(layout, env, align: str, resolution: float | None, source: str):
+    """The layout in the scan's frame (registered by its marks, the registration said on
+    stderr), its slots checked to lie in the scanned area (:mod:`nanoasm.planner.alignment`)."""
+    from nanoasm.planner.alignment import RESOLUTION, in_scan_frame
+
+    layout, alignment = in_scan_frame(layout, env, align, resolution=resolution or RESOLUTION, source=source)
+    if alignment is not None:
+        print(f"nanoasm: {alignment.line()}", file=sys.stderr)
+    return layout
 
 
 def _with_progress(label: str, work):
@@ -439,14 +500,20 @@ def _check_planner(planner: str) -> None:
 @contextmanager
 def _run_progress(label: str):
     """Engine subscribers showing how far the run is on a terminal (none otherwise), on a
-    line that starts with ``label`` ("dry-run" or "run")."""
+    line that starts with ``label`` ("dry-run" or "run"), and saying the registration of a
+    layout by its marks in one line on stderr."""
     from rich.console import Console
 
     from nanoasm.executor.documents import CHECKPOINT, EVENT, as_dict
 
     console = Console(stderr=True)
+
+    def registered(topic: str, doc) -> None:
+        if topic == "registration":
+            console.print(f"nanoasm: {as_dict(doc)['text']}", markup=False, highlight=False, soft_wrap=True)
+
     if not console.is_terminal:
-        yield []
+        yield [registered]
         return
     with console.status(f"{label}: full scan") as status:
         def follow(topic: str, doc) -> None:
@@ -457,7 +524,7 @@ def _run_progress(label: str):
                 c = d.get("counts", {})
                 status.update(f"{label}: {c.get('pushes', 0)} push(es) done, "
                               f"{len(d.get('remaining', []))} to go")
-        yield [follow]
+        yield [follow, registered]
 
 
 @app.command("dry-run")
@@ -477,6 +544,8 @@ def dry_run_cmd(
     live_port: LivePort = 8765,
     resume: Resume = None,
     force: Force = False,
+    no_align: NoAlign = False,
+    align_scale: AlignScale = False,
 ) -> None:
     """Assemble LAYOUT in a simulated world holding SCENE, exactly as a real run would."""
     from nanoasm.dryrun import dry_run_files, resume_dry_run
@@ -506,7 +575,8 @@ def dry_run_cmd(
     if (scene_file is None) != (layout_file is None):
         raise InputError(None, "SCENE LAYOUT", "give both a scene and a layout, or neither for the example")
     _check_planner(planner)
-    plan_options = _options(PlanOptions, planner=planner, budget=budget, seed=seed or 0)
+    plan_options = _options(PlanOptions, planner=planner, budget=budget, seed=seed or 0,
+                            align=_align(no_align, align_scale))
     outcome, layout = dry_run_files(scene_file, layout_file, seed=seed, strategy=strategy,
                                     plan_options=plan_options, log=log_to, report=report,
                                     progress=_run_progress("dry-run"))
@@ -520,7 +590,8 @@ def run_cmd(
     layout_file: Annotated[Optional[Path], typer.Argument(metavar="LAYOUT", help="Layout (TOML/JSON); "
                                                           "not with --resume.")] = None,
     instrument: Annotated[Optional[Path], typer.Option(help="Instrument file (nanoasm.instrument/1); "
-                                                           "required.")] = None,
+                                                           "required. Its backend: nidaq (NI-DAQmx, the "
+                                                           "default) or nanonis (Nanonis TCP).")] = None,
     strategy: StrategyName = "full",
     report: ReportFile = None,
     log: LogFile = None,
@@ -528,9 +599,13 @@ def run_cmd(
     live_port: LivePort = 8765,
     resume: Resume = None,
     force: Force = False,
+    no_align: NoAlign = False,
+    align_scale: AlignScale = False,
 ) -> None:
-    """Assemble LAYOUT unattended on the instrument described by --instrument (NI-DAQmx)."""
+    """Assemble LAYOUT unattended on the instrument described by --instrument: an NI-DAQmx
+    card (backend = "nidaq") or a Nanonis controller (backend = "nanonis")."""
     from nanoasm.harness import LogTo
+    from nanoasm.planner.options import PlanOptions
     from nanoasm.run import run_files
 
     if instrument is None:
@@ -550,7 +625,8 @@ def run_cmd(
                    [("LAYOUT", layout_file), ("--instrument", instrument), ("--resume", resume)])
     _check_log(log, force)
     rep = run_files(instrument, layout_file, strategy=strategy, resume_from=resume,
-                    log=LogTo(log, live, live_port), report=report, progress=_run_progress("run"))
+                    log=LogTo(log, live, live_port), report=report, progress=_run_progress("run"),
+                    plan_options=PlanOptions(align=_align(no_align, align_scale)))
     states = {s: sum(v.state == s for v in rep.slots) for s in ("filled", "missed", "unfilled")}
     print(f"run: {states['filled']} of {len(rep.targets)} slot(s) filled by the check scans "
           f"({states['missed']} missed, {states['unfilled']} unfilled), "
@@ -599,6 +675,45 @@ def _print_summary(layout, outcome) -> None:
     if more:
         table.add_row("…", f"and {more} more not filled (the report lists every slot)")
     Console().print(table)
+
+
+# -- calibration ----------------------------------------------------------------------
+
+@app.command("calibrate")
+def calibrate_cmd(
+    output: Annotated[Path, typer.Option("-o", "--output", help="Write the [cantilever], [friction] and "
+                                         "[baseline] tables here (.toml, to paste into the instrument file).")],
+    instrument: Annotated[Optional[Path], typer.Option(help="Calibrate the lever of this instrument file's "
+                          "hardware, at the places its [calibration] table names.")] = None,
+    dry_run: Annotated[Optional[Path], typer.Option("--dry-run", metavar="SCENE", help="Calibrate the "
+                       "simulated AFM of this scene instead (its lever, over a calibration specimen).")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Seed of the simulated instrument (--dry-run; default: "
+                                                     "the scene's).")] = None,
+    spring_constant: Annotated[Optional[float], typer.Option(help="The lever's k in N/m (default: the "
+                               "instrument file's [cantilever] k).")] = None,
+    plot: Annotated[Optional[Path], typer.Option(metavar="DIR", help="Also write a plot of each step into "
+                                                                     "this folder (PNG).")] = None,
+) -> None:
+    """Measure the lever's constants through the instrument (seed 3.4-3.6): force curve, baselines,
+    friction loops on the substrate and on a slope, a step edge."""
+    from nanoasm.calibrate import calibrate_files
+
+    if (instrument is None) == (dry_run is None):
+        raise InputError(None, "--instrument/--dry-run", "give exactly one of --instrument FILE or --dry-run SCENE")
+    if output.suffix.lower() != ".toml":
+        raise InputError(str(output), None, "output must end in .toml")
+    if spring_constant is not None:
+        _number("--spring-constant", spring_constant, positive=True)
+    if seed is not None and seed < 0:
+        raise InputError(None, "--seed", f"must not be negative, got {seed}")
+    _outputs_apart([("-o", output)], [("--instrument", instrument), ("--dry-run", dry_run)])
+    cal = calibrate_files(output, instrument=instrument, scene=dry_run, seed=seed,
+                          spring_constant=spring_constant, plot=plot)
+    v = cal.values
+    print(f"{output}: written: K_n = {v['K_n'].value:.2f} nm/V, C2 = {v['C2'].value:.2f} nm/V, k_l K_l / h = "
+          f"{v['lateral_gain'].value:.2f} nN/V, alpha = {v['alpha'].value:.3f}, mu_ts = {v['mu_ts'].value:.3f}")
+    if plot is not None:
+        print(f"{plot}: 5 plot(s) written")
 
 
 # -- sweeps ---------------------------------------------------------------------------

@@ -6,7 +6,9 @@ AFM only through the ``Instrument`` protocol, as it would see hardware. Its twin
 runs is :mod:`nanoasm.run`; both report through :func:`nanoasm.harness.report_of`.
 :func:`dry_run` runs a scene and a layout; :func:`dry_run_files` and
 :func:`resume_dry_run` are the command line's, with the run log, the simulated world
-kept beside it for resuming (:mod:`nanoasm.simkeep`) and the report file.
+kept beside it for resuming (:mod:`nanoasm.simkeep`) and the report file. A dry-run
+first calibrates the simulated instrument's lever (:func:`nanoasm.calibrate.simulated_calibration`)
+and compensates with what it measured, as a run compensates with its instrument file's.
 """
 
 from __future__ import annotations
@@ -24,7 +26,10 @@ from scipy.optimize import linear_sum_assignment
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout, load_layout
 from nanoasm.errors import InputError
+from nanoasm.calibrate import simulated_calibration
 from nanoasm.executor.assembly import Assembly
+from nanoasm.executor.calibration import Calibration
+from nanoasm.executor.calibration_fit import CalibrationFailed
 from nanoasm.executor.documents import as_dict
 from nanoasm.executor.engine import RunEngine, Subscriber
 from nanoasm.executor.report import Report
@@ -32,7 +37,7 @@ from nanoasm.executor.resume import resume_point, resumed_log_path
 from nanoasm.executor.runlog import RunLog, to_json
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.executor.summary import RunSummary
-from nanoasm.harness import LogTo, check_fits, plain, report_of, run_logs, warn
+from nanoasm.harness import LogTo, check_fits, own_frame, plain, report_of, run_logs, warn
 from nanoasm.planner import PlanOptions
 from nanoasm.planner.assign import in_slot
 from nanoasm.simkeep import SimKeeper, read_sim_state, restore_sim, sim_state_path
@@ -140,6 +145,7 @@ class Outcome:
     truly_filled: tuple[str, ...] = ()
     pushes: tuple[PushEnd, ...] = ()
     ids: dict[str, str] = field(default_factory=dict)     # identified id -> the scene's id
+    calibration: Calibration | None = None                # the lever the run compensated with
 
     @property
     def verdict_filled(self) -> tuple[str, ...]:
@@ -274,7 +280,17 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
         sim = SimulatedAFM(scene, seed=seed)
         start_clock = sim.clock()
         initial_sample = sim.truth()
-    assembly = Assembly(layout, options or exec_options(scene), plan_options)
+    # the executor compensates with the lever calibrated through the simulated instrument,
+    # never with the truth's constants (nanoasm.calibrate); its maps cover the working area
+    side = min(max(*layout.area, *scene.area), *sim.config.xy_range)
+    try:
+        cal = simulated_calibration(sim, seed, side)
+        lever = {"lever": cal.lever(scene.params.cantilever.signal_limit), "baselines": cal.baselines}
+    except CalibrationFailed as exc:        # as a lab would: the nominal lever, said so
+        cal, lever = None, {}
+        warn([f"the simulated lever's calibration failed ({exc}): compensating with the dissertation's "
+              f"nominal lever"])
+    assembly = Assembly(layout, options or exec_options(scene), plan_options, source=layout_name, **lever)
     drift_log, push_log = _DriftLog(), _PushLog(sim)
     subscribers = [*(subscribers or ()), drift_log, push_log]
     if keep_sim is not None:
@@ -296,12 +312,13 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     ids = match_ids(summary.env.objects, initial)
     for log in logs:
         _log_truth(log, initial, final, ids, sim.clock())
+    initial, final = own_frame(summary, initial), own_frame(summary, final)    # a layout registered by its marks
     wall = wall_before + time.perf_counter() - t_wall
     report = report_of(summary, layout, total, wall, layout_name=layout_name,
                        scene_name=scene_name, seed=seed, objects=(initial, final), ids=ids)
     filled, errors = filled_slots(layout, report.assignment, {b.id: b for b in final})
     return Outcome(report, summary, filled, errors, drift_log.against(sim, summary.epoch),
-                   truth_slots(layout, final), push_log.ends(sim, summary, ids), ids)
+                   truth_slots(layout, final), push_log.ends(sim, summary, ids), ids, cal)
 
 
 

@@ -78,9 +78,10 @@ def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall
               ids: dict[str, str] | None = None) -> Report:
     """The report of a run from its summary: the one constructor of both harnesses.
 
-    A run reports the objects it identified and those it believes in at the end. A
+    A run reports the objects it identified and those it believes in at the end (in the
+    layout's own frame when the run registered it by its marks). A
     dry-run gives what its truth tells instead: the true objects before and after
-    (``objects``, layout frame) and which true object each identified one is (``ids``:
+    (``objects``, the layout's own frame) and which true object each identified one is (``ids``:
     identified id -> scene id), by which the assignment and the pushes are reported.
     ``instrument_total`` and ``wall_total`` are the run's seconds on the instrument and
     of this program.
@@ -90,6 +91,7 @@ def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall
         belief = summary.belief
         objects = (tuple(plain(o) for o in summary.env.objects),
                    tuple(plain(o) for oid, o in belief.objects.items() if oid not in belief.lost))
+        objects = (own_frame(summary, objects[0]), own_frame(summary, objects[1]))
     t, w = summary.times, summary.wall
     return Report(
         scene=scene_name, layout=layout_name, seed=seed, targets=layout.targets,
@@ -100,7 +102,17 @@ def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall
         wall_time=WallTime(w["identify"], w["plan"], w["execute"], wall_total),
         slots=tuple(replace(v, object=None if v.object is None else ids.get(v.object, v.object))
                     for v in summary.slots),
+        registration=summary.registration,
     )
+
+
+def own_frame(summary: RunSummary, bodies: tuple[Body, ...]) -> tuple[Body, ...]:
+    """``bodies`` (the run's frame, the scan's) in the layout's own frame: moved back by
+    the registration of its marks, when the run made one."""
+    if summary.registration is None:
+        return bodies
+    back = summary.registration.inverse()
+    return tuple(plain(back.body(b)) for b in bodies)
 
 
 def check_fits(layout: Layout, source: str | None, config) -> None:

@@ -123,6 +123,9 @@ def review(path: str | os.PathLike) -> Review:
             rev.notes.append(f"layout.json skipped: {err}")
     docs = log.documents(ENVIRONMENT, PLAN, PUSH, CHECKPOINT, DRIFT, RESULT, STOP, notes=rev.notes)
     last = {topic: doc for topic, doc in docs}
+    reg = next((doc.registration for topic, doc in docs if topic == PLAN and doc.registration is not None), None)
+    if rev.layout is not None and reg is not None:      # registered by its marks: the log is in the scan's frame
+        rev.layout = rev.layout.mapped(reg, rev.layout.area)
     rev.stop = last.get(STOP)
     envs = [doc for topic, doc in docs if topic == ENVIRONMENT]
     rev.initial = list(envs[-1].objects) if envs else []
@@ -354,7 +357,7 @@ def _scene(ax, rev: Review, bodies: list[Body], truth: list[Body], title: str, *
     if rev.layout is not None:
         w, h = rev.layout.area
         ax.plot([0, w, w, 0, 0], [0, 0, h, h, 0], color="0.6", lw=0.8)
-        for k in rev.layout.keepouts:
+        for k in rev.layout.regions:
             ax.add_patch(Polygon(k.polygon, closed=True, fc=(1, 0.3, 0.3, 0.15), ec="tab:red", lw=0.8))
         for tg in rev.layout.targets:
             _outline(ax, tg, ec="tab:blue", ls="-", lw=1.2)

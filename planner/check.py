@@ -78,6 +78,7 @@ def check_plan(plan: Plan, layout: Layout, env: Environment, *, tip_radius: floa
     """
     objects = {o.id: Body(o.id, o.kind, o.at, o.diameter, o.angle, o.length) for o in env.objects}
     regions = [(f"keepout[{i}]", k.geometry()) for i, k in enumerate(layout.keepouts, start=1)]
+    regions += [(f"mark[{i}]", k.geometry()) for i, k in enumerate(layout.marks, start=1)]
     regions += [(f"obstacle[{i}]", shapely.Polygon(ob.polygon)) for i, ob in enumerate(env.obstacles, start=1)]
     area = shapely.box(0, 0, min(layout.area[0], env.area[0]), min(layout.area[1], env.area[1]))
     found: list[Collision] = []

@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import shapely
 
@@ -20,6 +20,7 @@ from nanoasm.cad.layout import Layout
 from nanoasm.world.environment import Environment, EnvObject
 
 from .assign import assignable, compatible, effort, match
+from .frames import slots_on_obstacles
 from .freespace import FreeSpace
 from .options import PlanOptions
 from .paths import Mover, centre_path, path_length, turns
@@ -62,7 +63,7 @@ class _Session:
         self.layout, self.env, self.options = layout, env, options
         self.targets = {t.id: t for t in layout.targets}
         self.objects: dict[str, EnvObject] = {o.id: o for o in env.objects}
-        regions = [k.geometry() for k in layout.keepouts] + [shapely.Polygon(ob.polygon) for ob in env.obstacles]
+        regions = [k.geometry() for k in layout.regions] + [shapely.Polygon(ob.polygon) for ob in env.obstacles]
         # a rod lying on a keep-out or an obstacle stays where it is (a particle is pushed off)
         on_region = set()
         if regions:
@@ -225,7 +226,9 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
     t0 = time.perf_counter()
     s = _Session(layout, env, options)
     s.rods.offsets = dict(pivot_offsets or {})
-    matching = match(layout, [o for o in env.objects if o.id not in s.fixed_ids], options)
+    on_obstacle = slots_on_obstacles(layout, env)       # no object can be put there: named, not "no path"
+    free = replace(layout, targets=tuple(t for t in layout.targets if t.id not in on_obstacle))
+    matching = match(free, [o for o in env.objects if o.id not in s.fixed_ids], options)
     efforts = {t: effort(s.targets[t], s.objects[o]) for t, o in matching.moves}
     nodes, blocked = order(matching.moves, s.targets, s.objects, s.fixed_ids, options.clearance, efforts)
     object_of = dict(matching.moves)
@@ -233,7 +236,7 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
         s.placed.add(o)
 
     done: list[tuple[str, str]] = []
-    unfilled = list(matching.unfilled)
+    unfilled = list(matching.unfilled) + [Unfilled(t, why) for t, why in on_obstacle.items()]
     unfilled += [Unfilled(t, f"slot is held by {s.objects[h].kind} {h!r}, which cannot be pushed")
                  for t, h in sorted(blocked.items())]
     for i, (kind, key) in enumerate(nodes):
@@ -267,7 +270,7 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
     assignment = sorted([*matching.staying, *done], key=lambda p: order_of[p[0]])
     unfilled.sort(key=lambda u: order_of[u.target])
     plan = Plan(layout.name, tuple(Assignment(t, o) for t, o in assignment), tuple(s.operations),
-                tuple(unfilled))
+                tuple(unfilled), layout.registration)
     s.stats.moves = len(done)
     s.stats.wall_time = time.perf_counter() - t0
     return plan, s.stats

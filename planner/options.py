@@ -6,6 +6,9 @@ from dataclasses import dataclass
 
 from nanoasm.param import param, validate
 
+#: How a layout with alignment marks is registered (:mod:`nanoasm.planner.alignment`).
+ALIGNS = ("rigid", "similarity", "none")
+
 #: OMPL planners by the names the CLI accepts.
 PLANNERS = ("rrtconnect", "rrt", "rrtstar", "informedrrtstar", "bitstar", "prm", "prmstar",
             "fmt", "kpiece", "bkpiece", "lbkpiece")
@@ -43,6 +46,10 @@ class PlanOptions:
     rod_push_point : float
         Push point of rod pushes as a fraction of the length from the pushed end; kept
         well away from the bifurcation at L/2 (seed eq. 4.10).
+    align : str
+        How a layout with alignment marks is registered to the scan before planning
+        (:mod:`nanoasm.planner.alignment`): ``rigid`` (rotation and translation),
+        ``similarity`` (the scale too) or ``none`` (the layout frame is the scan's).
     """
 
     tip_radius: float = param(10.0, "nm", "AFM tip radius", positive=True)
@@ -58,6 +65,8 @@ class PlanOptions:
     rod_swing: float = param(20.0, "deg", "largest rotation of one rod push", positive=True, hi=60.0)
     rod_push_point: float = param(0.1, "-", "push point of rod pushes, fraction of the length from the "
                                   "pushed end", lo=0.0, hi=0.3)
+    align: str = param("rigid", "", "registration of a layout with marks: rigid, similarity (scale too) or none",
+                       choices=ALIGNS)
 
     def __post_init__(self) -> None:
         validate(self)

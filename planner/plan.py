@@ -2,7 +2,8 @@
 
 ``tip_path`` is the tip's path in contact with the surface, in the layout frame (nm);
 moves between pushes are the executor's. ``expect`` is where the pushed object should
-end up (``angle`` for rods, ``None`` for particles).
+end up (``angle`` for rods, ``None`` for particles). A plan of a layout registered by
+its marks is in the scan's frame and carries the transform (``registration``).
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import os
 from dataclasses import dataclass
 from typing import NoReturn
 
+from nanoasm.cad.frame import Similarity, similarity_from_table
 from nanoasm.fileio import dumps_json, read_document, write_atomic
 from nanoasm.param import check_number
 from nanoasm.schema import Point, Table, check_format
@@ -92,16 +94,23 @@ class Unfilled:
 
 @dataclass(frozen=True)
 class Plan:
+    """A plan; ``registration`` is the transform from the layout's own frame to the
+    scan's (whose frame the tip paths are in) when the layout was registered by its marks."""
+
     layout: str | None
     assignment: tuple[Assignment, ...] = ()
     operations: tuple[Operation, ...] = ()
     unfilled: tuple[Unfilled, ...] = ()
+    registration: Similarity | None = None
 
     def to_dict(self) -> dict:
-        return {"format": FORMAT, "layout": self.layout,
-                "assignment": [a.to_dict() for a in self.assignment],
-                "operations": [o.to_dict() for o in self.operations],
-                "unfilled": [u.to_dict() for u in self.unfilled]}
+        d = {"format": FORMAT, "layout": self.layout,
+             "assignment": [a.to_dict() for a in self.assignment],
+             "operations": [o.to_dict() for o in self.operations],
+             "unfilled": [u.to_dict() for u in self.unfilled]}
+        if self.registration is not None:
+            d["registration"] = self.registration.to_dict()
+        return d
 
     def dumps(self) -> str:
         return dumps_json(self.to_dict())
@@ -136,7 +145,7 @@ def plan_from_dict(data: dict, source: str | None = None) -> Plan:
     """Validate a parsed ``nanoasm.plan/1`` document."""
     check_format(data, source, FORMAT)
     t = Table(data, source)
-    t.check_keys(required={"format"}, optional={"layout", "assignment", "operations", "unfilled"})
+    t.check_keys(required={"format"}, optional={"layout", "assignment", "operations", "unfilled", "registration"})
     operations = []
     ids: set[int] = set()
     for ot in t.tables("operations"):
@@ -151,7 +160,9 @@ def plan_from_dict(data: dict, source: str | None = None) -> Plan:
         angle = None if et.is_null("angle") else et.number("angle", None)
         operations.append(Operation(op_id, ot.string("object"), _optional_string(ot, "target"),
                                     ot.points("tip_path", min_len=2), Expect(et.pair("at"), angle)))
-    return Plan(_optional_string(t, "layout"), assignments_from(t), tuple(operations), unfilled_from(t))
+    rt = t.table("registration", optional=True)
+    return Plan(_optional_string(t, "layout"), assignments_from(t), tuple(operations), unfilled_from(t),
+                None if rt is None else similarity_from_table(rt))
 
 
 def load_plan(path: str | os.PathLike) -> Plan:

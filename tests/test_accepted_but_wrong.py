@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, DataEnd, Footer, Header, Message, Schema
-from test_hostile_inputs import MCAP_MAGIC, SECONDS, _cli, _particles, _refused, _run
+from test_hostile_inputs import MCAP_MAGIC, _cli, _particles, _refused, _run
 
 from nanoasm.cad.layout import MAX_TARGETS
 from nanoasm.cli import main
@@ -157,7 +157,8 @@ def test_a_layout_larger_than_the_scenes_scanner_is_refused_before_the_run(tmp_p
 def test_plan_lists_ten_unfilled_slots_and_counts_the_rest(tmp_path, capsys):
     layout = _grid_layout(tmp_path / "grid.json", MAX_TARGETS)
     env = tmp_path / "env.json"
-    env.write_text(json.dumps({"format": "nanoasm.env/1", "area": [1000, 1000], "objects": [
+    area = json.loads(layout.read_text())["area"]       # a scan of the whole layout (issue 17: else refused)
+    env.write_text(json.dumps({"format": "nanoasm.env/1", "area": area, "objects": [
         {"id": f"o{i}", "kind": "particle", "at": [300 + 200 * i, 500], "diameter": 50} for i in range(4)]}))
     out = tmp_path / "plan.json"
     code, stdout, err = _out(capsys, "plan", layout, "--env", env, "-o", out)

@@ -108,12 +108,14 @@ def test_the_run_harness_reports_what_the_run_believes(runs, bowtie):
     """nanoasm.run's harness in front of the simulated AFM (any Instrument will do): the
     dry-run's very run, reported through the same constructor from what the run
     identified and believes instead of from the truth."""
+    from nanoasm.executor.lever_file import InstrumentLever
     from nanoasm.run import run
 
     scene, layout = bowtie
     dry = runs["local-scan"]
+    lever = InstrumentLever(dry.calibration.lever(), baselines=dry.calibration.baselines)   # the dry-run's own
     rep = run(layout, simmod.SimulatedAFM(scene, seed=3), options=ExecOptions(strategy="local-scan"),
-              layout_name="particles.toml")
+              layout_name="particles.toml", lever=lever)
     assert report_from_dict(json.loads(rep.dumps())) == rep
     assert (rep.scene, rep.layout, rep.seed, rep.targets) == (None, "particles.toml", None, layout.targets)
     assert rep.counts == dry.report.counts and rep.unfilled == dry.report.unfilled

@@ -742,13 +742,13 @@ def test_import_layout_dispatches_by_suffix(tmp_path):
 
 @pytest.mark.parametrize("name, options, line", [
     ("chip.svg", {"rod_diameter": 10}, "{p}: --rod-diameter: does not apply to SVG files "
-                                       "(options for SVG: --scale, --keepout-class)"),
+                                       "(options for SVG: --scale, --keepout-class, --marks-layer)"),
     ("chip.gds", {"scale": 2}, "{p}: --scale: does not apply to GDS files (options for GDS: --cell, --area, "
-                               "--particle-layer, --rod-layer, --keepout-layer, --area-layer)"),
+                               "--particle-layer, --rod-layer, --keepout-layer, --area-layer, --marks-layer)"),
     ("chip.dxf", {"cell": "TOP"}, "{p}: --cell: does not apply to DXF files "
-                                  "(options for DXF: --scale, --rod-diameter, --area)"),
+                                  "(options for DXF: --scale, --rod-diameter, --area, --marks-layer)"),
     ("chip.dxf", {"keepout_class": "x"}, "{p}: --keepout-class: does not apply to DXF files "
-                                         "(options for DXF: --scale, --rod-diameter, --area)"),
+                                         "(options for DXF: --scale, --rod-diameter, --area, --marks-layer)"),
     ("chip.oas", {}, "{p}: unknown layout file type '.oas'; expected one of .dxf, .gds, .gds2, .gdsii, .svg"),
     ("chip", {}, "{p}: unknown layout file type '(none)'; expected one of .dxf, .gds, .gds2, .gdsii, .svg"),
 ])

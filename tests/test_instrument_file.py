@@ -60,7 +60,7 @@ DELETE = object()
 
 BAD = [
     # unknown keys, with the nearest allowed one
-    ("scaling", {"x": 1.0}, "scaling: unknown key (allowed: daq, format, imaging, name, scanner)"),
+    ("scaling", {"x": 1.0}, "scaling: unknown key (allowed: backend, baseline, calibration, cantilever, daq, format, friction, imaging, name, nanonis, scanner)"),
     ("daq.ai.hieght", "ai3", "daq.ai.hieght: unknown key (did you mean 'height'?)"),
     ("scanner.nm_per_volts", [1, 2, 3], "scanner.nm_per_volts: unknown key (did you mean 'nm_per_volt'?)"),
     ("imaging.line_sped", 10.0, "imaging.line_sped: unknown key (did you mean 'line_speed'?)"),

@@ -11,7 +11,7 @@ import math
 import os
 from dataclasses import dataclass
 
-from nanoasm.bodies import TOUCH_EPS, Body, body_from_table, check_unique_ids, polygon_from_table
+from nanoasm.bodies import MAX_COORDINATE, TOUCH_EPS, Body, body_from_table, check_unique_ids, polygon_from_table
 from nanoasm.errors import InputError
 from nanoasm.fileio import dumps_json, read_document, write_atomic
 from nanoasm.instrument.protocol import MAX_SCANNER_RANGE
@@ -62,12 +62,15 @@ class EnvObstacle:
 
 @dataclass(frozen=True)
 class Environment:
-    """What identification found: ``area`` (w, h) in nm, objects and obstacles."""
+    """What identification found: ``area`` (w, h) in nm, objects and obstacles, positions
+    relative to the scan's lower-left corner, which lies at ``origin`` in the scan file's
+    own coordinates (an absolute-coordinate scan's offset; (0, 0) by default)."""
 
     area: Point
     objects: tuple[EnvObject, ...] = ()
     obstacles: tuple[EnvObstacle, ...] = ()
     source: str | None = None
+    origin: Point = (0.0, 0.0)
 
     def to_dict(self) -> dict:
         d: dict = {"format": FORMAT}
@@ -76,6 +79,8 @@ class Environment:
         d["area"] = list(self.area)
         d["objects"] = [o.to_dict() for o in self.objects]
         d["obstacles"] = [o.to_dict() for o in self.obstacles]
+        if tuple(self.origin) != (0.0, 0.0):
+            d["origin"] = list(self.origin)
         return d
 
     def dumps(self) -> str:
@@ -95,9 +100,12 @@ def environment_from_dict(data: dict, source: str | None = None) -> Environment:
     """Validate a parsed ``nanoasm.env/1`` document; errors name ``source`` and the key."""
     check_format(data, source, FORMAT)
     t = Table(data, source)
-    t.check_keys(required={"format", "area"}, optional={"source", "objects", "obstacles"})
+    t.check_keys(required={"format", "area"}, optional={"source", "objects", "obstacles", "origin"})
     src = t.string("source", None)
     area = t.pair("area", names=("width", "height"), positive=True)
+    origin = t.pair("origin", (0.0, 0.0))
+    if max(abs(origin[0]), abs(origin[1])) > MAX_COORDINATE:
+        t.fail("origin", f"({origin[0]:g}, {origin[1]:g}) lies beyond ±{MAX_COORDINATE:g} nm (1 m)")
     tables = t.tables("objects")
     objects = []
     for i, ot in enumerate(tables, start=1):
@@ -113,7 +121,7 @@ def environment_from_dict(data: dict, source: str | None = None) -> Environment:
         pts, _ = polygon_from_table(ot)
         height = ot.number("height", nonnegative=True)
         obstacles.append(EnvObstacle(pts, height, ot.boolean("edge", False)))
-    return Environment(area, tuple(objects), tuple(obstacles), src)
+    return Environment(area, tuple(objects), tuple(obstacles), src, (float(origin[0]), float(origin[1])))
 
 
 def load_environment(path: str | os.PathLike) -> Environment:

@@ -55,7 +55,10 @@ within ±30 % (:data:`CREEP_SPREAD`) of the nominal 0.01 per decade and 0.1 s, a
 steady drift acceleration of magnitude uniform in 0 to 0.05/600 nm/s² (the drift velocity
 changes by up to 0.05 nm/s in 10 min; :data:`MAX_ACCELERATION`) in a uniform direction.
 They are the scene's ``[creep]`` and ``[drift_change]`` tables, so a written scene
-reproduces them. The same family, seed and drift give the same pair.
+reproduces them. The lever too is drawn from the seed (:func:`~.random_scene.draw_lever`:
+``k``, ``K_n``, ``C1``, ``C2``, ``lateral_gain`` and ``alpha`` each within ±20 % of the seed's
+lever), the scene's ``[cantilever]`` table: a dry-run calibrates it first and compensates
+with what it measured. The same family, seed and drift give the same pair.
 """
 
 from __future__ import annotations
@@ -73,7 +76,7 @@ from nanoasm.schema import Point
 from . import family_slots as fs
 from .family_slots import Slots
 from .params import CreepParams, DriftChangeParams, DriftParams
-from .random_scene import SceneSpec, random_scene
+from .random_scene import SceneSpec, draw_lever, random_scene
 from .scene import Obstacle, Scene, scene_from_dict
 
 #: Least clearance between a slot and any object of the generated scene, nm.
@@ -282,7 +285,7 @@ def family_case(name: str, seed: int, drift: float | None = None) -> tuple[Scene
     else:  # pragma: no cover - the families leave plenty of room
         raise RuntimeError(f"family {name}: no feasible scene for seed {seed} in {ATTEMPTS} attempts")
     obstacles = tuple(Obstacle(q, 30.0) for q in polygons)
-    params = replace(base.params, creep=creep, drift_change=change)
+    params = replace(base.params, creep=creep, drift_change=change, cantilever=draw_lever(seed))
     scene = replace(base, objects=kept + wires, obstacles=obstacles, params=params, seed=seed)
     scene = scene_from_dict(scene.to_dict(), f"family {name}")
     layout = Layout((fam.side, fam.side), slots, tuple(Keepout(q) for q in polygons), name=f"{name}-{seed}")

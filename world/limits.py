@@ -28,6 +28,9 @@ MAX_INVALID_SHARE = 0.5
 #: From this share of pixels without a finite height on, reading the image warns (one
 #: line): objects over such pixels are missed or cut.
 WARN_INVALID_SHARE = 0.01
+#: An image wider or taller than this (nm: 1 mm, more than any AFM scanner's range) is
+#: read with a one-line warning: its units are likely wrong.
+WARN_IMAGE_SIDE = 1e6
 #: Largest tip radius identification models, nm (100 µm, beyond colloidal probes): a
 #: larger one overflows the tip image.
 MAX_TIP_RADIUS = 1e5

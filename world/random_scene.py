@@ -2,13 +2,15 @@
 
 Objects are placed one by one by rejection sampling: a candidate is kept when its
 footprint keeps at least ``gap`` nm from every footprint placed so far (found through a
-uniform grid, so thousands of objects cost little) and from every obstacle.
+uniform grid, so thousands of objects cost little) and from every obstacle. The lever's
+constants are drawn about the seed's (:func:`draw_lever`, ±``lever_spread``), so a dry-run
+of a generated scene tests the calibration and compensation chain, not one lever.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import shapely
@@ -17,11 +19,27 @@ from nanoasm.bodies import Body
 from nanoasm.errors import InputError
 from nanoasm.schema import Point
 
-from .params import DriftParams, NoiseParams, WorldParams
+from .params import CantileverParams, DriftParams, NoiseParams, WorldParams
 from .scene import Obstacle, Scene, scene_from_dict
 
 #: Candidates tried per object before giving up.
 ATTEMPTS = 400
+#: The lever's constants drawn about nominal (:func:`draw_lever`), each its own factor.
+LEVER_KEYS = ("k", "K_n", "C1", "C2", "lateral_gain", "alpha")
+#: Relative half-width of the uniform spread of the lever's constants about nominal.
+LEVER_SPREAD = 0.2
+
+
+def draw_lever(seed: int, spread: float = LEVER_SPREAD) -> CantileverParams:
+    """The seed's lever (:class:`CantileverParams` defaults) with ``k``, ``K_n``, ``C1``,
+    ``C2``, ``lateral_gain`` and ``alpha`` each scaled by a factor uniform in
+    [1 - spread, 1 + spread], from a generator of its own (``[seed, 19]``), to 4
+    significant digits; ``spread = 0`` is the nominal lever."""
+    nominal = CantileverParams()
+    if spread == 0:
+        return nominal
+    f = np.random.default_rng([seed, 19]).uniform(1.0 - spread, 1.0 + spread, len(LEVER_KEYS))
+    return replace(nominal, **{k: float(f"{getattr(nominal, k) * x:.4g}") for k, x in zip(LEVER_KEYS, f)})
 
 
 @dataclass(frozen=True)
@@ -40,6 +58,7 @@ class SceneSpec:
     gap: float = 50.0
     drift: DriftParams | None = None
     noise: NoiseParams | None = None
+    lever_spread: float = LEVER_SPREAD
 
     def check(self) -> None:
         """Raise InputError (naming the CLI option) for an impossible request."""
@@ -63,6 +82,8 @@ class SceneSpec:
             bad("--rod-length", "the longest rod is shorter than the thinnest rod's diameter")
         if not (math.isfinite(self.gap) and self.gap >= 0):
             bad("--gap", f"must not be negative, got {self.gap:g}")
+        if not (math.isfinite(self.lever_spread) and 0 <= self.lever_spread <= 0.5):
+            bad("--lever-spread", f"must lie in [0, 0.5], got {self.lever_spread:g}")
 
 
 class _Grid:
@@ -172,6 +193,7 @@ def random_scene(spec: SceneSpec, seed: int) -> Scene:
                 raise InputError(None, option, f"only {placed} of {count} {kind}s fit without overlap "
                                  f"in {area[0]:g} x {area[1]:g} nm; use a larger --area, fewer objects or a "
                                  "smaller --gap")
-    params = WorldParams(**{k: v for k, v in (("drift", spec.drift), ("noise", spec.noise)) if v is not None})
+    params = WorldParams(cantilever=draw_lever(seed, spec.lever_spread),
+                         **{k: v for k, v in (("drift", spec.drift), ("noise", spec.noise)) if v is not None})
     scene = Scene(area, tuple(objects), tuple(obstacles), params, seed)
     return scene_from_dict(scene.to_dict(), "generated scene")

@@ -41,7 +41,8 @@ from nanoasm.errors import InputError
 from nanoasm.fileio import write_atomic
 from nanoasm.instrument import HeightImage
 
-from .limits import MAX_HEIGHT, MAX_INVALID_SHARE, MAX_PIXEL_SIZE, MAX_PIXELS, MIN_PIXEL_SIZE, WARN_INVALID_SHARE
+from .limits import (MAX_HEIGHT, MAX_INVALID_SHARE, MAX_PIXEL_SIZE, MAX_PIXELS, MIN_PIXEL_SIZE, WARN_IMAGE_SIDE,
+                     WARN_INVALID_SHARE)
 from .readers_instrument import quiet_libraries, read_gwy, read_ibw, read_jpk, read_spm, read_stp, short_message
 from .readers_text import parse_matrix, parse_xyz
 
@@ -265,13 +266,21 @@ def _checked(z: np.ndarray, ps: float, origin, src: str, meta: dict) -> HeightIm
 
 def image_warnings(image: HeightImage) -> list[str]:
     """What a user should know about an image read (one line each, naming its source):
-    pixels without a finite height from ``WARN_INVALID_SHARE`` of the image on."""
+    pixels without a finite height from ``WARN_INVALID_SHARE`` of the image on, and an
+    extent beyond ``WARN_IMAGE_SIDE`` (1 mm, more than any AFM scanner's range: its
+    units are likely wrong)."""
     n = image.height.size
+    out = []
     invalid = n - int(np.count_nonzero(np.isfinite(image.height)))
     if invalid and invalid / n >= WARN_INVALID_SHARE:
-        return [f"{image.source or 'image'}: {invalid} of {n} pixels ({invalid / n:.0%}) have no finite "
-                "height (NaN or infinity); objects over them are missed or cut"]
-    return []
+        out.append(f"{image.source or 'image'}: {invalid} of {n} pixels ({invalid / n:.0%}) have no finite "
+                   "height (NaN or infinity); objects over them are missed or cut")
+    ny, nx = image.height.shape
+    w, h = nx * image.pixel_size, ny * image.pixel_size
+    if max(w, h) > WARN_IMAGE_SIDE:
+        out.append(f"{image.source or 'image'}: the image spans {w:g} x {h:g} nm, more than 1 mm: are its "
+                   f"units right (pixel size {image.pixel_size:g} nm; --pixel-size sets it)?")
+    return out
 
 
 def save_height_image(image: HeightImage, path: str | os.PathLike) -> None:

@@ -1,5 +1,6 @@
 """The microscope as the executor sees it, implemented alike by the simulated AFM
-(:mod:`nanoasm.world.sim`) and by the hardware backends (:mod:`nanoasm.executor.nidaq`).
+(:mod:`nanoasm.world.sim`) and by the hardware backends (:mod:`nanoasm.executor.nidaq`,
+:mod:`nanoasm.executor.nanonis`).
 
 :class:`Instrument` is the protocol; :class:`InstrumentConfig` its ranges, calibration and
 limits; :func:`check_samples` the limit check every DAC chunk passes before it is sent;

@@ -11,7 +11,8 @@ pixels above the cut (holes filled), with their height.
 
 Coordinates are nm in the environment's frame, whose (0, 0) is the image's lower-left
 corner (the corner of pixel (0, 0)) and whose area is the image's extent: a file's
-``origin`` (a scanner offset) moves nothing out of that area.
+``origin`` (a scanner offset) moves nothing out of that area; the environment records
+it as its own ``origin``.
 """
 
 from __future__ import annotations
@@ -102,7 +103,9 @@ def identify(image: HeightImage, *, cut: float | None = None, min_area: float | 
     -------
     Environment
         ``area`` is the image's extent and (0, 0) its lower-left corner, whatever the
-        image's ``origin``: every object lies in the area. Ids are ``o1, o2, ...``.
+        image's ``origin``: every object lies in the area. That corner's position in the
+        file's own coordinates (an absolute-coordinate scan's offset) is the
+        environment's ``origin``. Ids are ``o1, o2, ...``.
 
     Raises
     ------
@@ -110,10 +113,14 @@ def identify(image: HeightImage, *, cut: float | None = None, min_area: float | 
         For an option out of range, an image with no finite height or with heights
         beyond :data:`~nanoasm.world.limits.MAX_HEIGHT`.
     """
+    corner = (float(image.origin[0]), float(image.origin[1]))
+    if pixel_size is not None and image.pixel_size > 0:     # the file's coordinates scale with it too
+        corner = (corner[0] * pixel_size / image.pixel_size, corner[1] * pixel_size / image.pixel_size)
     image = replace(image, origin=(0.0, 0.0))
-    return analyse(image, cut=cut, min_area=min_area, min_height=min_height, pixel_size=pixel_size,
-                   tip_radius=tip_radius, tip_half_angle=tip_half_angle, rod_limit=rod_limit,
-                   plane_order=plane_order, line_order=line_order).environment
+    env = analyse(image, cut=cut, min_area=min_area, min_height=min_height, pixel_size=pixel_size,
+                  tip_radius=tip_radius, tip_half_angle=tip_half_angle, rod_limit=rod_limit,
+                  plane_order=plane_order, line_order=line_order).environment
+    return replace(env, origin=corner)
 
 
 def analyse(image: HeightImage, *, cut: float | None = None, min_area: float | None = None,

@@ -6,7 +6,8 @@ objects' truth (:mod:`.objects`) and their contacts (:mod:`.contacts` on
 :mod:`.contact_space`), with the signal model (:mod:`.signals`, :mod:`.calibration`), the
 drift and creep truth (:mod:`.drift_model`), push faults (:mod:`.faults`) and the
 instrument clock (:mod:`.clock`); its whole state as checked JSON for a resumed dry-run
-(:mod:`.state`). Only the dry-run harness, tests and benchmarks import
+(:mod:`.state`). :class:`~.calibration_afm.CalibrationAFM` is the same lever and detector
+over a calibration specimen, which ``nanoasm calibrate --dry-run`` and every dry-run calibrate on. Only the dry-run harness, tests and benchmarks import
 this package; the executor never does.
 """
 

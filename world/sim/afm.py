@@ -39,6 +39,7 @@ from dataclasses import replace
 import numpy as np
 
 from nanoasm.bodies import Body
+from nanoasm.errors import InstrumentLimitError
 from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock, check_samples, ramp
 from nanoasm.world.params import WorldParams
 from nanoasm.world.render import make_surface, render_line, render_scan, surface_near
@@ -123,7 +124,8 @@ class SimulatedAFM:
                                   rng["faults"], rng["vdw"])
         self._surface = make_surface((), scene.obstacles, scene.area, roughness_rms=self.params.sim.roughness_rms,
                                      roughness_length=self.params.sim.roughness_length, rng=rng["surface"])
-        self._model = SignalModel.from_params(self.params, 0.0, scene.area[0])
+        # the piezo-bow baseline B rises across the sample's area (seed Fig. 3.14)
+        self._model = SignalModel.from_params(self.params, self.placement[0], scene.area[0])
         self._rng_scan, self._rng_signal = rng["scan"], rng["signal"]
         self._last = cfg.rest_codes()
         rest = cfg.codes_to_nm(self._last)
@@ -363,8 +365,9 @@ class SimulatedAFM:
         x0, y0, x1, y1 = (float(v) for v in region)
         if not (x1 > x0 and y1 > y0):
             raise ValueError(f"region must have x1 > x0 and y1 > y0, got {region!r}")
+        side = max(x1 - x0, y1 - y0)      # the square scanned, as a scanner would
         self._point("region corner", (x0, y0))
-        self._point("region corner", (x1, y1))
+        self._point("region corner", (x0 + side, y0 + side))
         return x0, y0, x1, y1
 
     def _point(self, name: str, p) -> np.ndarray:
@@ -373,5 +376,6 @@ class SimulatedAFM:
             raise ValueError(f"{name} must be two finite numbers, got {p!r}")
         lo, hi = self.config.lower[:2], self.config.upper[:2]
         if np.any(arr < lo) or np.any(arr > hi):
-            raise ValueError(f"{name} = ({arr[0]:g}, {arr[1]:g}) nm lies outside the scanner range")
+            raise InstrumentLimitError(f"{name} = ({arr[0]:g}, {arr[1]:g}) nm lies outside the scanner range; "
+                                       "nothing scanned")
         return arr

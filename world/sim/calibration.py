@@ -112,18 +112,29 @@ def force_curve_signals(model: SignalModel, params: WorldParams, x: float, z_top
     return ForceCurve(z_app, out[0], out[1], z_ret, out[2], out[3])
 
 
+def slope_friction(f_n, tan_slope, mu: float, shear: float) -> np.ndarray:
+    """Lateral force against the tip's motion (nN) sliding under the load ``f_n`` (nN) on a
+    hard surface whose slope along the motion is ``tan_slope`` (> 0 uphill), with the
+    friction μN + ``shear`` (seed eq. 3.14-3.19): uphill N' = (F_n + A sin θ)/(cos θ − μ sin θ)
+    and N' sin θ + (μN' + A) cos θ against the motion; downhill N = (F_n − A sin θ)/(cos θ +
+    μ sin θ) and (μN + A) cos θ − N sin θ. Flat (θ = 0): μ F_n + A either way."""
+    f_n, t = np.broadcast_arrays(np.asarray(f_n, float), np.asarray(tan_slope, float))
+    th = np.arctan(np.abs(t))
+    s, c = np.sin(th), np.cos(th)
+    n_up = (f_n + shear * s) / (c - mu * s)
+    n_down = (f_n - shear * s) / (c + mu * s)
+    return np.where(t >= 0, n_up * s + (mu * n_up + shear) * c, (mu * n_down + shear) * c - n_down * s)
+
+
 def friction_loop_signals(model: SignalModel, params: WorldParams, x: float, tilt_deg: float,
                           loads: np.ndarray, width: float, n: int, rng: np.random.Generator) -> FrictionLoop:
     """Trace and retrace lines of ``n`` samples over ``width`` nm at each load (nN)."""
-    th = math.radians(tilt_deg)
     mu = params.friction.mu_ts
     shear = params.friction.nu * params.adhesion.tip_substrate
-    s, c = math.sin(th), math.cos(th)
     f_n = np.asarray(loads, float)
-    n_up = (f_n + shear * s) / (c - mu * s)
-    n_down = (f_n - shear * s) / (c + mu * s)
-    lat_up = n_up * s + (mu * n_up + shear) * c
-    lat_down = n_down * s - (mu * n_down + shear) * c
+    tan = math.tan(math.radians(tilt_deg))
+    lat_up = slope_friction(f_n, tan, mu, shear)
+    lat_down = -slope_friction(f_n, -tan, mu, shear)
     lever = model.lever
     sn_bar = np.clip(f_n / (lever.spring_constant * lever.normal_gain), -lever.full_scale, lever.full_scale)
     xs = x + np.linspace(0.0, width, n)
