@@ -362,3 +362,19 @@ def test_an_edge_fit_spoiled_into_a_negative_c2_fails_in_one_line():
     with pytest.raises(CalibrationFailed, match="C2 came out -20 nm/V, not positive"):
         edge_fit(s_n, 100.0 + 20.0 * s_n, t)
     assert edge_fit(s_n, 100.0 - 20.0 * s_n, t).value == pytest.approx(20.0)
+
+
+def test_the_calibration_specimen_refuses_a_scan_outside_the_range_as_an_instrument_limit():
+    """As every instrument does (tests/test_instrument_conformance.py): a scan line with an
+    end outside the scanner's range is an InstrumentLimitError, nothing scanned."""
+    from nanoasm.errors import InstrumentLimitError
+    from nanoasm.world.scene import load_scene
+    from nanoasm.world.sim.afm import SimulatedAFM
+    from nanoasm.world.sim.calibration_afm import CalibrationAFM
+
+    inst = CalibrationAFM.beside(SimulatedAFM(load_scene(example("bowtie_scene.toml")), seed=1), 1)
+    upper = inst.config.upper
+    t0 = inst.clock()
+    with pytest.raises(InstrumentLimitError, match="outside the scanner range; nothing scanned"):
+        inst.scan_line((1000.0, 1000.0), (float(upper[0]) + 10.0, 1000.0), 16)
+    assert inst.clock() == t0

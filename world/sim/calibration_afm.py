@@ -33,6 +33,7 @@ import math
 
 import numpy as np
 
+from nanoasm.errors import InstrumentLimitError
 from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock, check_samples, ramp
 from nanoasm.world.cantilever import to_afm
 from nanoasm.world.params import WorldParams
@@ -240,7 +241,8 @@ class CalibrationAFM:
         if arr.shape != (2,) or not np.all(np.isfinite(arr)):
             raise ValueError(f"{name} must be two finite numbers, got {p!r}")
         if np.any(arr < self.config.lower[:2]) or np.any(arr > self.config.upper[:2]):
-            raise ValueError(f"{name} = ({arr[0]:g}, {arr[1]:g}) nm lies outside the scanner range")
+            raise InstrumentLimitError(f"{name} = ({arr[0]:g}, {arr[1]:g}) nm lies outside the scanner range; "
+                                       "nothing scanned")
         return arr
 
     def _move_lifted(self, xy: np.ndarray) -> None:
