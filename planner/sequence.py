@@ -86,10 +86,11 @@ def dependency_graph(moves: Sequence[tuple[str, str]], targets: Mapping[str, Bod
         corridors[t] = line.buffer(reach + clearance, quad_segs=4)
     ctree_ids = list(corridors)
     ctree = shapely.STRtree([corridors[t] for t in ctree_ids])
-    crossing = {(ctree_ids[k], t2) for t2, _ in moves
-                for k in ctree.query(_footprint(targets[t2]), predicate="intersects") if ctree_ids[k] != t2}
+    crossing_into = {t2: sorted({ctree_ids[k] for k in ctree.query(_footprint(targets[t2]), predicate="intersects")
+                                 if ctree_ids[k] != t2}, key=lambda t: moves_index[t]) for t2, _ in moves}
+    crossing = {(t1, t2) for t2, into in crossing_into.items() for t1 in into}
     for t2, _ in moves:
-        for t1 in sorted((t1 for t1, t in crossing if t == t2), key=lambda t: moves_index[t]):
+        for t1 in crossing_into[t2]:
             if (t2, t1) in crossing and targets[t1].kind != targets[t2].kind:
                 first = _rod_or_particle_first(t1, t2, targets, objects, slot_obj)
                 if first != t1:

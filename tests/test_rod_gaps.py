@@ -9,6 +9,7 @@ import math
 
 import numpy as np
 import pytest
+import shapely
 from test_planner import filled, replay
 
 from nanoasm.bodies import Body
@@ -92,9 +93,8 @@ def test_order_of_crossing_rod_and_particle_moves_does_not_depend_on_their_listi
 
 
 def test_the_approach_pose_lies_outside_the_gap_on_the_rods_side():
-    layout, env = _case(())
     options = PlanOptions()
-    space = FreeSpace((A, A), [(__import__("shapely").Polygon(p), 0.0) for p in PADS], {}, options.clearance)
+    space = FreeSpace((A, A), [(shapely.Polygon(p), 0.0) for p in PADS], {}, options.clearance)
     assert not roomy(space, BAR, options, None)           # no room to line up between the pads
     for start, sign in (((C, 300.0), -1), ((C, 3700.0), 1)):
         rod = Body("r", "rod", start, 90.0, 30.0, 1200.0)
