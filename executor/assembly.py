@@ -32,10 +32,11 @@ from nanoasm.world.environment import Environment
 from nanoasm.world.identify import identify
 
 from . import course as courses
-from .baselines import BaselineMaps
+from .baselines import BaselineMaps, lever_line
 from .belief import Belief
 from .context import RunContext
 from .course import Course
+from .progress_docs import PROGRESS, ProgressDoc
 from .drift_steps import bootstrap, unskewed_obstacles
 from .engine import Msg
 from .estimators import estimator_for
@@ -43,12 +44,19 @@ from .motion_steps import travel_to
 from .pushing import push
 from .landmarks import Landmarks, moved_area
 from .references import References
+from .reviewed_plan import ReviewedPlan, first_plan
+from .scan_area import ScanArea
 from .checkpoints import checkpoint, restore
 from .strategy import ExecOptions
 from .summary import RunSummary, summary
 from .verdict import STATES, check_slots
 
 Procedure = Generator[Msg, Any, RunSummary]
+
+
+def _phase(name: str) -> Msg:
+    """The message telling progress displays that the run enters phase ``name``."""
+    return Msg("emit", (PROGRESS, ProgressDoc("phase", name)))
 
 
 class Assembly:
@@ -58,9 +66,11 @@ class Assembly:
 
     def __init__(self, layout: Layout, options: ExecOptions | None = None,
                  plan_options: PlanOptions | None = None, *, lever: Cantilever = SEED_LEVER,
-                 source: str | None = None, baselines: BaselineMaps | None = None):
+                 source: str | None = None, baselines: BaselineMaps | None = None,
+                 reviewed: ReviewedPlan | None = None, scan: ScanArea | None = None):
         self.layout = layout                     # in the scan's frame once registered (_register)
         self.source = source                     # the layout's file, named by a failed registration
+        self.reviewed, self.scan = reviewed, scan    # a plan to start from; the full scan (None: centred)
         self.options = options or ExecOptions()
         self.plan_options = plan_options or PlanOptions()
         self.strategy = self.options.strategy
@@ -94,28 +104,27 @@ class Assembly:
     def procedure(self, config) -> Procedure:
         """The whole run as a generator of messages (``config``: the instrument's)."""
         t_wall = time.perf_counter()
-        region_side = max(self.layout.area)
-        pixels = int(math.ceil(region_side / self.options.pixel_size))
-        # the working area is scanned centred in the scanner's range; its lower-left corner
+        # the working area (by default centred in the scanner's range): its lower-left corner
         # is the layout frame's origin, and the scanner frame at the start is the layout
         # frame: drift is measured from here
-        origin = 0.5 * (np.asarray(config.xy_range, float) - region_side)
+        area = self.scan or ScanArea.centred(self.layout.area, config.xy_range, self.options.pixel_size)
+        region_side, pixels, origin = area.side, area.pixels, np.asarray(area.origin, float)
         epoch = yield Msg("clock")
         drift = estimator_for(self.strategy, origin, epoch, self.options)
         ctx = self.ctx = RunContext(config, self.options, drift, None, References(), baselines=self.baselines)
-        yield Msg("event", (self._lever_line(),))
+        yield Msg("event", (lever_line(self.lever, self.baselines),))
         yield from travel_to(ctx, origin + region_side / 2)
         t0 = yield Msg("clock")
+        yield _phase("full scan")
         yield Msg("event", (f"full scan {pixels} x {pixels} px of {region_side:g} nm",))
-        region = (float(origin[0]), float(origin[1]), float(origin[0] + region_side),
-                  float(origin[1] + region_side))
-        image = yield Msg("full_scan", (pixels, region))
+        image = yield Msg("full_scan", (pixels, area.region))
         image = replace(image, origin=(image.origin[0] - origin[0], image.origin[1] - origin[1]))
         t1 = yield Msg("clock")
         yield Msg("emit", ("full_scan", {"t": t1, "height": image.height, "pixel_size": image.pixel_size,
                                          "origin": image.origin}))
         ledger = ctx.ledger
         ledger.times["full_scan"] += t1 - t0
+        yield _phase("identify")
         w0 = time.perf_counter()
         env = identify(image, tip_radius=self.plan_options.tip_radius)
         env = Environment(self.layout.area, env.objects, env.obstacles, env.source)
@@ -135,18 +144,21 @@ class Assembly:
                                 f"as drift references",))
         # the drift velocity first: the plan needs the objects where they are, not where
         # the full scan's rows put them (hundreds of nm apart over a frame)
+        if drift.bootstraps:
+            yield _phase("drift")
         yield from bootstrap(ctx)
         def row_time(y: float) -> float:
             return t0 + (min(max(y * pixels / region_side, 0.0), pixels - 1.0) + 0.5) * line_time
 
-        yield from self._register(env, row_time)
+        yield from self._register(env, row_time, area.resolution)
         # the obstacles too (electrodes: a slot beside one is planned against where it is)
         ctx.belief.obstacles = unskewed_obstacles(env.obstacles, drift, row_time)
+        yield _phase("plan")
         w0 = time.perf_counter()
-        plan = self.replanner.start(self.environment())
+        plan, line = first_plan(self.replanner, self.reviewed, self.layout, self.environment(), area.pixel_size)
         ledger.wall["plan"] += time.perf_counter() - w0
         yield Msg("emit", ("plan", plan.to_dict()))
-        yield Msg("event", (f"plan: {len(plan.assignment)} slot(s) assigned, {len(plan.operations)} push(es)",))
+        yield Msg("event", (line,))
         drift.after_plan(plan, ctx.belief, self.layout.area)
         ops = list(plan.operations)
         ctx.moving = {op.object for op in ops}
@@ -155,17 +167,11 @@ class Assembly:
                                          avoid=moved_area(env, ops, self.layout))
         self.course.follow(self.environment(), ops)
         self.env, self.first_plan = env, plan
+        yield _phase("execute")
         ledger.wall["execute"] += time.perf_counter() - t_wall - ledger.wall["identify"] - ledger.wall["plan"]
         return (yield from self._execute(ops, 0, 0, {}))
 
-    def _lever_line(self) -> str:
-        lv, maps = self.lever, self.baselines
-        base = (f"{maps.pixels} x {maps.pixels} baseline maps" if maps is not None
-                else "baselines measured in free air before each push")
-        return (f"lever: K_n {lv.normal_gain:.4g} nm/V, C1 {lv.c1:.3g} nm/V, C2 {lv.c2:.4g} nm/V, k_l K_l / h "
-                f"{lv.lateral_gain:.4g} nN/V, alpha {lv.crosstalk:.3g}; {base}")
-
-    def _register(self, env: Environment, row_time) -> Procedure:
+    def _register(self, env: Environment, row_time, resolution: float) -> Procedure:
         """A layout with marks registered to the obstacles of the full scan, each corner
         moved by the drift of its row's time (``row_time(y)``; known once the drift is
         bootstrapped): from here on the run works in the scan's frame
@@ -178,7 +184,7 @@ class Assembly:
             return float(x), float(y)
 
         layout, alignment = in_scan_frame(self.layout, env, self.plan_options.align, moved=unskewed,
-                                          resolution=self.options.pixel_size, source=self.source)
+                                          resolution=resolution, source=self.source)
         if alignment is not None:
             self.registered(alignment.transform, layout)
             yield Msg("event", (alignment.line(),))
@@ -199,6 +205,7 @@ class Assembly:
         the time the run stood still."""
         ops, done, corrections = restore(self, config, state)
         self.ctx.baselines = self.baselines
+        yield _phase("execute")
         t = yield Msg("clock")
         self.ctx.drift.resumed(t - float(state["t"]))
         yield Msg("event", (f"resumed from the checkpoint after push {self.ctx.ledger.counts['pushes']} "
@@ -235,7 +242,9 @@ class Assembly:
                                     f"failed or went astray: it stays where it is, an obstacle "
                                     f"to the rest",), {"level": "warn"})
             if self.strategy.scans:
-                astray = o.kind == "rod" and not lost and not self._course_clear(o, ops[i:])
+                astray = o.kind == "rod" and not lost and not courses.course_clear(   # next poses clear?
+                    o, self.course.starts, ops[i:], [b for b in self.environment().objects if b.id != o.id],
+                    self.plan_options.tip_radius)
                 moved, ctx.corrected = ctx.corrected, False     # by a relocalisation
                 if lost or (self.strategy.replans and (outcome == "failed" or off > limit or astray or moved)):
                     ops, i, done = (yield from self._replan(op, outcome, done, off, astray, moved)), 0, 0
@@ -288,9 +297,3 @@ class Assembly:
         yield Msg("event", (f"replanned after {op.object} {outcome} ({why}): {len(ops)} push(es) remain",))
         yield Msg("emit", ("plan", rest.plan.to_dict()))
         return ops
-
-    def _course_clear(self, rod, rest: list[Operation]) -> bool:
-        """Whether a rod's next planned poses stay clear of its neighbours
-        (:func:`.course.course_clear`)."""
-        others = [b for b in self.environment().objects if b.id != rod.id]
-        return courses.course_clear(rod, self.course.starts, rest, others, self.plan_options.tip_radius)

@@ -4,7 +4,7 @@ bodies, tip paths and the layout (Foxglove's well-known protobuf messages).
 Free functions from documents (dicts as the run log keeps them) to messages, stamped
 with the instrument time in nanoseconds; :class:`~nanoasm.executor.runlog.RunLog`
 writes them. Positions in nm in the layout frame (``frame_id`` ``"layout"``); Foxglove's
-3-D panel shows 1 nm as 1 m.
+3-D panel shows 1 nm as 1 m. The full scan as a 3-D surface is :mod:`.scan_surface`'s.
 """
 
 from __future__ import annotations
@@ -65,10 +65,10 @@ def grid(doc: dict, stamp):
                 data=h.tobytes())
 
 
-def bodies_scene(bodies, prefix: str, colour, stamp, delete=()):
+def bodies_scene(bodies, prefix: str, colour, stamp, delete=(), lift=None):
     """Bodies (``Body.to_dict()`` documents): particles as spheres, rods and wires as
     boxes along their axis, with their ids, each as entity ``prefix:id``; the entities
-    ``prefix:id`` of ``delete`` removed."""
+    ``prefix:id`` of ``delete`` removed. Each rests on z = 0, or on ``lift(body)`` (nm)."""
     from foxglove.messages import (Color, CubePrimitive, SceneEntityDeletion, SceneUpdate,
                                    SpherePrimitive, TextPrimitive, Vector3)
 
@@ -80,17 +80,25 @@ def bodies_scene(bodies, prefix: str, colour, stamp, delete=()):
             d = float(b["diameter"])
         except (KeyError, TypeError, ValueError):
             continue
-        text = TextPrimitive(pose=_pose(x, y, d), billboard=True, font_size=12.0, scale_invariant=True,
+        z = lift(b) if lift is not None else 0.0
+        text = TextPrimitive(pose=_pose(x, y, z + d), billboard=True, font_size=12.0, scale_invariant=True,
                              color=col, text=str(b.get("id", "")))
         if b.get("length") is not None and b.get("angle") is not None:
-            shape = {"cubes": [CubePrimitive(pose=_pose(x, y, d / 2, float(b["angle"])),
+            shape = {"cubes": [CubePrimitive(pose=_pose(x, y, z + d / 2, float(b["angle"])),
                                              size=Vector3(x=float(b["length"]), y=d, z=d), color=col)]}
         else:
-            shape = {"spheres": [SpherePrimitive(pose=_pose(x, y, d / 2), size=Vector3(x=d, y=d, z=d),
+            shape = {"spheres": [SpherePrimitive(pose=_pose(x, y, z + d / 2), size=Vector3(x=d, y=d, z=d),
                                                  color=col)]}
         entities.append(_entity(f"{prefix}:{b.get('id')}", stamp, texts=[text], **shape))
     deletions = [SceneEntityDeletion(timestamp=stamp, id=f"{prefix}:{i}") for i in delete]
     return SceneUpdate(entities=entities, deletions=deletions)
+
+
+def believed(checkpoint: dict) -> tuple[list[dict], list]:
+    """A checkpoint's believed objects, the lost left out, and the ids of the lost (sorted)."""
+    belief = checkpoint.get("belief") or {}
+    lost = set(belief.get("lost", ()))
+    return [o for o in belief.get("objects", ()) if o.get("id") not in lost], sorted(lost)
 
 
 def paths_scene(paths, colour, stamp, thickness: float = 2.0, clear: bool = False):
@@ -113,9 +121,18 @@ def paths_scene(paths, colour, stamp, thickness: float = 2.0, clear: bool = Fals
     return SceneUpdate(entities=entities, deletions=deletions)
 
 
-def layout_scene(layout):
-    """Slots as outlines (circles, capsules), keep-outs, and the working area (at time 0)."""
+def layout_scene(layout, registration: dict | None = None):
+    """Slots as outlines (circles, capsules), keep-outs, and the working area (at time 0);
+    with ``registration`` (a plan's, as a dict), the layout mapped into the scan's frame,
+    where the run works once its marks were registered."""
     from foxglove.messages import Color, LinePrimitive, LinePrimitiveLineType, SceneUpdate, TextPrimitive
+
+    if registration is not None and layout.registration is None:
+        from nanoasm.cad.frame import Similarity
+
+        tf = Similarity(float(registration["rotation"]), tuple(float(v) for v in registration["translation"]),
+                        float(registration["scale"]))
+        layout = layout.mapped(tf, layout.area)
 
     def loop(pts, colour):
         return LinePrimitive(type=LinePrimitiveLineType.LineLoop, pose=_pose(0.0, 0.0, 0.0), thickness=2.0,
@@ -136,6 +153,17 @@ def layout_scene(layout):
     for i, k in enumerate(layout.marks, 1):       # alignment marks: keep-outs too
         entities.append(_entity(f"mark:{i}", timestamp(0), lines=[loop(k.polygon, COLOURS["keepout"])]))
     return SceneUpdate(entities=entities)
+
+
+def scan_line_scene(doc: dict, stamp):
+    """A local scan line (a ``scan_line`` document) where it lay on the sample, the offset
+    it was shifted by taken out; None for a line without one."""
+    off = doc.get("offset")
+    if off is None:
+        return None
+    a = np.asarray(doc["a"], float) - np.asarray(off, float)
+    b = np.asarray(doc["b"], float) - np.asarray(off, float)
+    return paths_scene([("line", (a.tolist(), b.tolist()))], COLOURS["scan"], stamp, thickness=4.0)
 
 
 def _entity(ident: str, stamp, **primitives):

@@ -19,6 +19,7 @@ from nanoasm.world.cantilever import Cantilever
 
 from .context import RunContext
 from .dac import plan_dac
+from .progress_docs import PROGRESS, ProgressDoc
 from .engine import Msg
 from .monitor import PushMonitor
 from .trajectory import PUSH, TRAVEL, operation
@@ -133,4 +134,9 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
         yield from lift(ctx)
     ctx.ledger.times["push"] += n_push / cfg.sample_rate
     ctx.ledger.times["travel"] += n_other / cfg.sample_rate
+    path = np.asarray(op.tip_path, float)
+    length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
+    towards = f"towards {op.target}" if op.target is not None else "out of the way"
+    yield Msg("emit", (PROGRESS, ProgressDoc("push", f"{op.object} {towards}, {length:.0f} nm of tip path: "
+                                                     f"{verdict.status} (peak force {verdict.peak_force:.0f} nN)")))
     return verdict

@@ -26,6 +26,7 @@ import numpy as np
 
 from . import creep_terms
 from .context import RunContext
+from .progress_docs import PROGRESS, ProgressDoc
 from .engine import Msg
 from .registration import register
 from .scan_steps import locate
@@ -128,6 +129,8 @@ def relocalise(ctx: RunContext, why: str):
         t_end = yield Msg("clock")
         ctx.ledger.times["local_scan"] += t_end - t
         ctx.ledger.counts["local_scans"] += 1
+        yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"relocalisation window {k + 1}, {pixels} x {pixels} "
+                                                               f"px, {t_end - t:.1f} s")))
         window = replace(scan, origin=(scan.origin[0] - off[0], scan.origin[1] - off[1]))
         reg = register(image, window, reference_mask=_mask(image, then), moving_mask=_mask(window, now))
         if not reg.ok:

@@ -1,7 +1,8 @@
 """Report v1 (``nanoasm.report/1``): what a dry-run or run did, with JSON round-trip.
 
 Targets and objects are in the layout's own frame; a layout registered by its marks
-adds ``registration``, the transform from that frame to the scan's."""
+adds ``registration``, the transform from that frame to the scan's; a run that executed a
+reviewed plan (``--plan``) adds ``plan``, that plan's file."""
 
 from __future__ import annotations
 
@@ -77,10 +78,12 @@ class Report:
     wall_time: WallTime = WallTime()
     slots: tuple[SlotVerdict, ...] = ()
     registration: Similarity | None = None      # the layout's registration by its marks
+    plan: str | None = None                     # the reviewed plan file the run executed (--plan)
 
     def to_dict(self) -> dict:
         return {
             "format": FORMAT, "scene": self.scene, "layout": self.layout, "seed": self.seed,
+            **({} if self.plan is None else {"plan": self.plan}),
             "targets": [t.to_dict() for t in self.targets],
             "initial_objects": [o.to_dict() for o in self.initial_objects],
             "final_objects": [o.to_dict() for o in self.final_objects],
@@ -118,7 +121,7 @@ def report_from_dict(data: dict, source: str | None = None) -> Report:
     t = Table(data, source)
     keys = ["format", "scene", "layout", "seed", "targets", "initial_objects", "final_objects",
             "assignment", "pushed", "unfilled", "counts", "instrument_time", "wall_time"]
-    t.check_keys(required=keys, optional={"slots", "registration"})
+    t.check_keys(required=keys, optional={"slots", "registration", "plan"})
     pushed = t.array("pushed")
     for i, p in enumerate(pushed, start=1):
         if not isinstance(p, str) or not p:
@@ -138,6 +141,7 @@ def report_from_dict(data: dict, source: str | None = None) -> Report:
         wall_time=_record(t, "wall_time", WallTime, integer=False),
         slots=verdict_from_table(t) if "slots" in data else (),
         registration=None if "registration" not in data else similarity_from_table(t.table("registration")),
+        plan=t.string("plan") if "plan" in data else None,
     )
 
 

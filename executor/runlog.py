@@ -31,8 +31,9 @@ import numpy as np
 from .documents import (CHANNELS, CHECKPOINT, DAC, ENVIRONMENT, EVENT, FAILED_VERDICTS, FULL_SCAN, PLAN, PUSH,
                         RESULT, SCAN_LINE, STOP, Document, as_dict)
 from .scan_attachment import FULL_SCAN_ATTACHMENT, full_scan_bytes
-from .foxglove_scenes import (COLOURS, bodies_scene, grid, layout_scene, log_line, nanoseconds, paths_scene,
-                              timestamp)
+from .foxglove_scenes import (COLOURS, believed, bodies_scene, grid, layout_scene, log_line, nanoseconds,
+                              paths_scene, scan_line_scene, timestamp)
+from .scan_surface import DESCRIPTION as SURFACE_DESCRIPTION, SURFACE_TOPIC, SurfaceView
 
 #: The run log's format name (MCAP profile and metadata).
 FORMAT = "nanoasm.runlog/1"
@@ -42,8 +43,9 @@ DAC_EVERY = 50
 # (topic, schema name, what it holds); JSON channels have schema names nanoasm.*
 TOPICS: tuple[tuple[str, str, str], ...] = (
     ("/events", "foxglove.Log", "the run's log lines (info, warning, error)"),
-    ("/layout", "foxglove.SceneUpdate", "slots of the layout, keep-outs and the working area"),
+    ("/layout", "foxglove.SceneUpdate", "slots, keep-outs and the working area (in the scan's frame once registered)"),
     ("/scan", "foxglove.Grid", "the full scan: heights (nm, float32) on the layout frame"),
+    (SURFACE_TOPIC, "foxglove.SceneUpdate", SURFACE_DESCRIPTION),
     ("/objects", "foxglove.SceneUpdate", "objects identified in the full scan"),
     ("/plan/paths", "foxglove.SceneUpdate", "tip paths of the plan, again at every replan"),
     ("/belief", "foxglove.SceneUpdate", "the executor's belief: every object's believed pose, after each push"),
@@ -174,9 +176,11 @@ class RunLog:
         self._t = 0.0                 # latest instrument time seen (s)
         self._pushes = 0
         self._plan_attached = False
+        self._layout = layout
         self._handlers = {EVENT: self._on_event, STOP: self._on_stop, FULL_SCAN: self._on_full_scan,
                           ENVIRONMENT: self._on_environment, PLAN: self._on_plan, PUSH: self._on_push,
                           CHECKPOINT: self._on_checkpoint, SCAN_LINE: self._on_scan_line}
+        self._surface = SurfaceView(self._log, self._stamp)      # the full scan in 3-D (.scan_surface)
         if live_port is not None:
             self.server = foxglove.start_server(name="nanoasm", host="127.0.0.1", port=live_port,
                                                 context=self.context)
@@ -264,6 +268,7 @@ class RunLog:
         handler = self._handlers.get(topic)
         if handler is not None:
             handler(d, t)
+        self._surface(topic, d, t)
         if topic in CHANNELS:
             self._log(CHANNELS[topic], _rounded(d) if topic in _ROUNDED else d, t)
         if topic in _FLUSH_AFTER:
@@ -297,6 +302,8 @@ class RunLog:
         if not self._plan_attached:
             self._plan_attached = True
             self.attach("plan.json", to_json(doc))
+            if self._layout is not None and doc.get("registration"):    # the slots where the run has them
+                self._log("/layout", layout_scene(self._layout, doc["registration"]), t)
         paths = [(f"op{op.get('id')}", op.get("tip_path") or ()) for op in doc.get("operations", ())]
         self._log("/plan/paths", paths_scene(paths, COLOURS["plan"], self._stamp(t), clear=True), t)
 
@@ -311,19 +318,13 @@ class RunLog:
             self._log("/belief", bodies_scene([belief], "obj", COLOURS["belief"], self._stamp(t)), t)
 
     def _on_checkpoint(self, doc: dict, t: float | None) -> None:
-        belief = doc.get("belief") or {}
-        lost = set(belief.get("lost", ()))
-        objs = [o for o in belief.get("objects", ()) if o.get("id") not in lost]
-        self._log("/belief", bodies_scene(objs, "obj", COLOURS["belief"], self._stamp(t), delete=sorted(lost)), t)
+        objs, lost = believed(doc)
+        self._log("/belief", bodies_scene(objs, "obj", COLOURS["belief"], self._stamp(t), delete=lost), t)
 
     def _on_scan_line(self, doc: dict, t: float | None) -> None:
-        off = doc.get("offset")
-        if off is None:
-            return
-        a = np.asarray(doc["a"], float) - np.asarray(off, float)
-        b = np.asarray(doc["b"], float) - np.asarray(off, float)
-        self._log("/local_scan/lines", paths_scene([("line", (a.tolist(), b.tolist()))], COLOURS["scan"],
-                                                   self._stamp(t), thickness=4.0), t)
+        scene = scan_line_scene(doc, self._stamp(t))
+        if scene is not None:
+            self._log("/local_scan/lines", scene, t)
 
     def write(self, topic: str, msg: Any, t: float | None) -> None:
         """A message on a channel (a dict or list as JSON, or a Foxglove message) at

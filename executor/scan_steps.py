@@ -19,6 +19,7 @@ from nanoasm.planner import Operation
 from .context import RunContext
 from .engine import Msg
 from .association import Candidate, associate, sighting
+from .progress_docs import PROGRESS, ProgressDoc
 from .local_scan import particle_after, particle_before, rod_after, rod_before
 from .lost_search import find_lost_particle
 from .motion_steps import approach
@@ -37,10 +38,12 @@ def run_pattern(ctx: RunContext, pattern):
     ctx.scan_ref = None
     ctx.scan_comp = np.zeros((2, 2))
     ctx.scan_creep = []
+    lines = 0
     try:
         line = next(pattern)
         while True:
             profile = yield from scan_line(ctx, np.asarray(line.a, float), np.asarray(line.b, float), int(line.n))
+            lines += 1
             line = pattern.send(profile)
     except StopIteration as stop:
         result = stop.value
@@ -49,7 +52,9 @@ def run_pattern(ctx: RunContext, pattern):
     if hasattr(result, "line_creep") and ctx.scan_creep:
         result = replace(result, line_creep=np.array(ctx.scan_creep, float).reshape(-1, 2))
     t1 = yield Msg("clock")
-    led.times["local_scan"] += t1 - t0 - (led.times["travel"] - travel0)
+    scanning = t1 - t0 - (led.times["travel"] - travel0)
+    led.times["local_scan"] += scanning
+    yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"{lines} line(s), {scanning:.1f} s")))
     return result
 
 

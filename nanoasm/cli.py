@@ -12,7 +12,6 @@ import os
 import signal
 import sys
 import threading
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, NoReturn, Optional
 
@@ -326,14 +325,18 @@ def identify_cmd(
     min_area: Annotated[Optional[float], typer.Option(help="Smallest object area, nm^2.")] = None,
     pixel_size: Annotated[Optional[float], typer.Option(help="Pixel size, nm (.npy, bare ASCII).")] = None,
     tip_radius: Annotated[float, typer.Option(help="AFM tip radius, nm (first guess).")] = 10.0,
+    plot: Annotated[Optional[Path], typer.Option(metavar="FILE", help="Also draw the levelled scan with what "
+                                                 "was found here (.png, .svg or .pdf).")] = None,
 ) -> None:
     """Identify particles, rods, wires and obstacles in an AFM image (environment v1)."""
+    from nanoasm import previews
     from nanoasm.world.identify import identify
     from nanoasm.world.limits import MAX_TIP_RADIUS
 
     if output.suffix.lower() != ".json":
         raise InputError(str(output), None, "output must end in .json")
-    _outputs_apart([("-o", output)], [("SCAN", scan)])
+    previews.check_plot_path(plot)
+    _outputs_apart([("-o", output), ("--plot", plot)], [("SCAN", scan)])
     for option, value in (("--cut", cut), ("--min-area", min_area)):
         if value is not None:
             _number(option, value, positive=True)
@@ -345,6 +348,9 @@ def identify_cmd(
     edge = sum(o.edge for o in env.objects)
     print(f"{output}: written: {kinds['particle']} particle(s), {kinds['rod']} rod(s), "
           f"{kinds['wire']} wire(s), {len(env.obstacles)} obstacle(s); {edge} cut by the border")
+    if plot is not None:
+        previews.write_figure(previews.identify_figure(image, env, scan.name), plot)
+        print(f"{plot}: written")
 
 
 # -- planning -------------------------------------------------------------------------
@@ -378,8 +384,11 @@ def plan_cmd(
     seed: Annotated[int, typer.Option(help="Seed of the planners' sampling.")] = 0,
     no_align: NoAlign = False,
     align_scale: AlignScale = False,
+    plot: Annotated[Optional[Path], typer.Option(metavar="FILE", help="Also draw the plan here (.png, .svg or "
+                                                 ".pdf): slots, objects, assignments, pushes, over the scan.")] = None,
 ) -> None:
     """Assign objects to slots and plan the pushes (plan v1)."""
+    from nanoasm import previews
     from nanoasm.cad.layout import load_layout
     from nanoasm.planner.core import plan_assembly
     from nanoasm.planner.options import PlanOptions
@@ -389,12 +398,14 @@ def plan_cmd(
         raise InputError(str(output), None, "output must end in .json")
     if (env_file is None) == (scan is None):
         raise InputError(None, "--env/--scan", "give exactly one of --env ENV.json or --scan SCAN")
-    _outputs_apart([("-o", output)], [("LAYOUT", layout_file), ("--env", env_file), ("--scan", scan)])
+    previews.check_plot_path(plot)
+    _outputs_apart([("-o", output), ("--plot", plot)], [("LAYOUT", layout_file), ("--env", env_file),
+                                                         ("--scan", scan)])
     _check_planner(planner)
     options = _options(PlanOptions, tip_radius=tip_radius, margin=margin, planner=planner, budget=budget,
                        seed=seed, align=_align(no_align, align_scale))
     layout = load_layout(layout_file)
-    resolution = None
+    resolution = image = None
     if env_file is not None:
         env = load_environment(env_file)
     else:
@@ -418,6 +429,9 @@ def plan_cmd(
         print(f"  unfilled {u.target}: {u.reason}")
     if more:
         print(f"  … and {more} more unfilled (see {output})")
+    if plot is not None:
+        previews.write_figure(previews.plan_figure(layout, env, plan, image), plot)
+        print(f"{plot}: written")
 
 
 
@@ -466,6 +480,23 @@ Resume = Annotated[Optional[Path], typer.Option("--resume", help="Go on with the
                                                               "unless --log says otherwise).")]
 Force = Annotated[bool, typer.Option("--force", help="Overwrite an existing --log file (and, for a dry-run, "
                                                      "the world kept beside it, LOG.sim).")]
+PlanFile = Annotated[Optional[Path], typer.Option("--plan", help="Execute this reviewed plan (plan.json of nanoasm "
+                                                  "plan) after the full scan instead of planning afresh; refused, "
+                                                  "nothing pushed, when the scene changed since it was made.")]
+Region = Annotated[Optional[tuple[float, float, float, float]], typer.Option(
+    "--region", metavar="X0 Y0 X1 Y1", help="What the full scan covers, scanner nm (default: the layout's area "
+                                            "centred in the scanner's range); its lower-left corner is the "
+                                            "layout's origin.")]
+Pixels = Annotated[Optional[int], typer.Option("--pixels", help="Pixels a side of the full scan, 16-4096 "
+                                                                "(default: 10 nm a pixel).")]
+
+
+def _check_fresh(resume: Path | None, plan: Path | None, region, pixels: int | None) -> None:
+    """``--plan``, ``--region`` and ``--pixels`` shape how a run starts: refused with ``--resume``."""
+    for option, value in (("--plan", plan), ("--region", region), ("--pixels", pixels)):
+        if resume is not None and value is not None:
+            raise InputError(None, option, "shapes how a run starts; a resumed run goes on from its log's "
+                                           "checkpoint (not with --resume)")
 
 
 def _check_log(log: Path | None, force: bool, kept: Path | None = None) -> None:
@@ -497,34 +528,18 @@ def _check_planner(planner: str) -> None:
         raise InputError(None, "--planner", f"unknown planner {planner!r}; one of {', '.join(PLANNERS)}")
 
 
-@contextmanager
-def _run_progress(label: str):
-    """Engine subscribers showing how far the run is on a terminal (none otherwise), on a
-    line that starts with ``label`` ("dry-run" or "run"), and saying the registration of a
-    layout by its marks in one line on stderr."""
-    from rich.console import Console
+def _run_progress(label: str, log_level: str | None = None):
+    """Engine subscribers showing how far the run is (:func:`nanoasm.progress.run_progress`):
+    timestamped log lines on stdout when it is not a terminal or ``--log-level`` is given, a
+    progress bar on a terminal; the level is checked here, before the run."""
+    from nanoasm.progress import run_progress
 
-    from nanoasm.executor.documents import CHECKPOINT, EVENT, as_dict
+    return run_progress(label, log_level)
 
-    console = Console(stderr=True)
 
-    def registered(topic: str, doc) -> None:
-        if topic == "registration":
-            console.print(f"nanoasm: {as_dict(doc)['text']}", markup=False, highlight=False, soft_wrap=True)
-
-    if not console.is_terminal:
-        yield [registered]
-        return
-    with console.status(f"{label}: full scan") as status:
-        def follow(topic: str, doc) -> None:
-            if topic == EVENT:
-                status.update(f"{label}: {as_dict(doc)['text']}")
-            elif topic == CHECKPOINT:
-                d = as_dict(doc)
-                c = d.get("counts", {})
-                status.update(f"{label}: {c.get('pushes', 0)} push(es) done, "
-                              f"{len(d.get('remaining', []))} to go")
-        yield [follow, registered]
+LogLevel = Annotated[Optional[str], typer.Option("--log-level", metavar="LEVEL", help="Say how the run goes "
+                     "in timestamped log lines on stdout (debug, info, warning or error and above; info when "
+                     "stdout is not a terminal) instead of the progress bar.")]
 
 
 @app.command("dry-run")
@@ -546,6 +561,10 @@ def dry_run_cmd(
     force: Force = False,
     no_align: NoAlign = False,
     align_scale: AlignScale = False,
+    log_level: LogLevel = None,
+    plan: PlanFile = None,
+    region: Region = None,
+    pixels: Pixels = None,
 ) -> None:
     """Assemble LAYOUT in a simulated world holding SCENE, exactly as a real run would."""
     from nanoasm.dryrun import dry_run_files, resume_dry_run
@@ -555,11 +574,13 @@ def dry_run_cmd(
     from nanoasm.simkeep import sim_state_path
 
     _check_run_options(strategy, report)
+    progress = _run_progress("dry-run", log_level)
     if resume is None and scene_file is None and layout_file is None:
         scene_file, layout_file = example("bowtie_scene.toml"), example("bowtie.toml")
     kept = None if log is None else sim_state_path(log)
+    _check_fresh(resume, plan, region, pixels)
     _outputs_apart([("--log", log), ("--log", kept), ("--report", report)],
-                   [("SCENE", scene_file), ("LAYOUT", layout_file), ("--resume", resume),
+                   [("SCENE", scene_file), ("LAYOUT", layout_file), ("--resume", resume), ("--plan", plan),
                     ("the world kept for --resume", None if resume is None else sim_state_path(resume))])
     _check_log(log, force, kept)
     log_to = LogTo(log, live, live_port)
@@ -569,7 +590,7 @@ def dry_run_cmd(
         _check_planner(planner)
         plan_options = _options(PlanOptions, planner=planner, budget=budget)
         outcome, layout = resume_dry_run(resume, plan_options=plan_options, log=log_to, report=report,
-                                         progress=_run_progress("dry-run"))
+                                         progress=progress)
         _print_summary(layout, outcome)
         return
     if (scene_file is None) != (layout_file is None):
@@ -579,7 +600,7 @@ def dry_run_cmd(
                             align=_align(no_align, align_scale))
     outcome, layout = dry_run_files(scene_file, layout_file, seed=seed, strategy=strategy,
                                     plan_options=plan_options, log=log_to, report=report,
-                                    progress=_run_progress("dry-run"))
+                                    progress=progress, plan=plan, region=region, pixels=pixels)
     _print_summary(layout, outcome)
     if report is not None:
         print(f"{report}: written")
@@ -601,6 +622,10 @@ def run_cmd(
     force: Force = False,
     no_align: NoAlign = False,
     align_scale: AlignScale = False,
+    log_level: LogLevel = None,
+    plan: PlanFile = None,
+    region: Region = None,
+    pixels: Pixels = None,
 ) -> None:
     """Assemble LAYOUT unattended on the instrument described by --instrument: an NI-DAQmx
     card (backend = "nidaq") or a Nanonis controller (backend = "nanonis")."""
@@ -621,17 +646,21 @@ def run_cmd(
         raise InputError(None, "--resume", "takes the layout from the log; give no LAYOUT")
     if resume is None and layout_file is None:
         raise InputError(None, "LAYOUT", "is required (or --resume LOG)")
+    _check_fresh(resume, plan, region, pixels)
     _outputs_apart([("--log", log), ("--report", report)],
-                   [("LAYOUT", layout_file), ("--instrument", instrument), ("--resume", resume)])
+                   [("LAYOUT", layout_file), ("--instrument", instrument), ("--resume", resume), ("--plan", plan)])
     _check_log(log, force)
     rep = run_files(instrument, layout_file, strategy=strategy, resume_from=resume,
-                    log=LogTo(log, live, live_port), report=report, progress=_run_progress("run"),
-                    plan_options=PlanOptions(align=_align(no_align, align_scale)))
+                    log=LogTo(log, live, live_port), report=report, progress=_run_progress("run", log_level),
+                    plan_options=PlanOptions(align=_align(no_align, align_scale)), plan=plan, region=region,
+                    pixels=pixels)
     states = {s: sum(v.state == s for v in rep.slots) for s in ("filled", "missed", "unfilled")}
     print(f"run: {states['filled']} of {len(rep.targets)} slot(s) filled by the check scans "
           f"({states['missed']} missed, {states['unfilled']} unfilled), "
           f"{rep.counts.pushes} push(es), {rep.counts.failed_pushes} failed; "
           f"{rep.instrument_time.total / 60:.1f} min")
+    if rep.plan is not None:
+        print(f"  executed the reviewed plan {rep.plan}")
     shown, more = first(v for v in rep.slots if v.state != "filled")
     for v in shown:
         print(f"  {v.state} {v.target}" + ("" if v.error is None else f": {v.error:.1f} nm off"))
@@ -657,6 +686,8 @@ def _print_summary(layout, outcome) -> None:
     found = outcome.summary.env
     kinds = ", ".join(f"{sum(o.kind == k for o in found.objects)} {k}(s)" for k in ("particle", "rod", "wire"))
     table.add_row("identified", f"{kinds}, {len(found.obstacles)} obstacle(s) in the full scan")
+    if rep.plan is not None:
+        table.add_row("plan", f"the reviewed plan {rep.plan}")
     if outcome.disagreements:
         table.add_row("[bold red]warning[/]", "the run's verdict differs from the truth on "
                       + ", ".join(outcome.disagreements))

@@ -37,7 +37,9 @@ from nanoasm.executor.resume import resume_point, resumed_log_path
 from nanoasm.executor.runlog import RunLog, to_json
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.executor.summary import RunSummary
-from nanoasm.harness import LogTo, check_fits, own_frame, plain, report_of, run_logs, warn
+from nanoasm.executor.reviewed_plan import ReviewedPlan
+from nanoasm.executor.scan_area import ScanArea
+from nanoasm.harness import LogTo, own_frame, plain, report_of, run_logs, run_start, warn
 from nanoasm.planner import PlanOptions
 from nanoasm.planner.assign import in_slot
 from nanoasm.simkeep import SimKeeper, read_sim_state, restore_sim, sim_state_path
@@ -167,7 +169,7 @@ class Outcome:
 #: The run log's channels of the truth, which this harness alone writes: (topic, schema,
 #: what it holds), as :data:`nanoasm.executor.runlog.TOPICS` lists the executor's.
 TRUTH_TOPICS = (
-    ("/sim/truth", "nanoasm.SimTruth", "dry-runs only, from the harness: true objects before and after"),
+    ("/sim/truth", "nanoasm.SimTruth", "dry-runs only, from the harness: true objects before and after, true drift"),
     ("/sim/truth/scene", "foxglove.SceneUpdate", "dry-runs only: the true objects after the run"),
 )
 _TRUTH_COLOUR = (0.8, 0.4, 1.0, 0.9)
@@ -183,11 +185,13 @@ def _log_world(log: RunLog, scene: Scene, sim: SimulatedAFM, seed: int) -> None:
 
 
 def _log_truth(log: RunLog, initial: tuple[Body, ...], final: tuple[Body, ...], ids: dict[str, str],
-               t: float) -> None:
+               drift: tuple[DriftPoint, ...], t: float) -> None:
     """The true objects (layout frame) before and after the run, and which identified object
-    each one is (``ids``: identified id -> scene id); then the log is finished."""
-    for phase, bodies in (("initial", initial), ("final", final)):
-        log.write("/sim/truth", {"phase": phase, "objects": [b.to_dict() for b in bodies], "ids": ids}, t)
+    each one is (``ids``: identified id -> scene id); with the final ones, the true drift
+    since the run's start at the time of each drift estimate; then the log is finished."""
+    true_drift = {"drift": [{"t": p.t, "offset": list(p.truth)} for p in drift]}
+    for phase, bodies, extra in (("initial", initial, {}), ("final", final, true_drift)):
+        log.write("/sim/truth", {"phase": phase, "objects": [b.to_dict() for b in bodies], "ids": ids, **extra}, t)
     log.write_bodies("/sim/truth/scene", [b.to_dict() for b in final], t, prefix="truth", colour=_TRUTH_COLOUR)
     log.finish()
 
@@ -259,7 +263,8 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
             options: ExecOptions | None = None, plan_options: PlanOptions | None = None,
             subscribers: list[Subscriber] | None = None, scene_name: str | None = None,
             layout_name: str | None = None, keep_sim: str | os.PathLike | None = None,
-            resume: tuple[dict, dict] | None = None) -> Outcome:
+            resume: tuple[dict, dict] | None = None, reviewed: ReviewedPlan | None = None,
+            scan: ScanArea | None = None) -> Outcome:
     """Run the assembly of ``layout`` on a simulated AFM holding ``scene``.
 
     ``keep_sim``: keep the simulated world at every checkpoint in this file (for
@@ -267,6 +272,7 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     of a stopped dry-run to go on with instead of starting afresh; the report's wall time
     then counts the stopped run's up to the checkpoint (its compute by stage) too. Run
     logs among the ``subscribers`` get the scene and the truth from this harness.
+    ``reviewed``, ``scan``: the plan to start from and the full scan, as :func:`nanoasm.run.run`.
     """
     seed = scene.seed if seed is None else seed
     seed = 0 if seed is None else seed
@@ -290,7 +296,8 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
         cal, lever = None, {}
         warn([f"the simulated lever's calibration failed ({exc}): compensating with the dissertation's "
               f"nominal lever"])
-    assembly = Assembly(layout, options or exec_options(scene), plan_options, source=layout_name, **lever)
+    assembly = Assembly(layout, options or exec_options(scene), plan_options, source=layout_name,
+                        reviewed=reviewed, scan=scan, **lever)
     drift_log, push_log = _DriftLog(), _PushLog(sim)
     subscribers = [*(subscribers or ()), drift_log, push_log]
     if keep_sim is not None:
@@ -310,32 +317,38 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     final = _layout_frame(sim, summary, sim.truth())
     total = sim.clock() - start_clock
     ids = match_ids(summary.env.objects, initial)
+    drift = drift_log.against(sim, summary.epoch)
     for log in logs:
-        _log_truth(log, initial, final, ids, sim.clock())
+        _log_truth(log, initial, final, ids, drift, sim.clock())
     initial, final = own_frame(summary, initial), own_frame(summary, final)    # a layout registered by its marks
     wall = wall_before + time.perf_counter() - t_wall
     report = report_of(summary, layout, total, wall, layout_name=layout_name,
-                       scene_name=scene_name, seed=seed, objects=(initial, final), ids=ids)
+                       scene_name=scene_name, seed=seed, objects=(initial, final), ids=ids,
+                       plan=None if reviewed is None else reviewed.source)
     filled, errors = filled_slots(layout, report.assignment, {b.id: b for b in final})
-    return Outcome(report, summary, filled, errors, drift_log.against(sim, summary.epoch),
+    return Outcome(report, summary, filled, errors, drift,
                    truth_slots(layout, final), push_log.ends(sim, summary, ids), ids, cal)
 
 
 
 def dry_run_files(scene_file: Path, layout_file: Path, *, seed: int | None = None, strategy: str = "full",
                   plan_options: PlanOptions | None = None, log: LogTo = LogTo(), report: Path | None = None,
-                  progress: AbstractContextManager | None = None) -> tuple[Outcome, Layout]:
+                  progress: AbstractContextManager | None = None, plan: Path | None = None, region=None,
+                  pixels: int | None = None) -> tuple[Outcome, Layout]:
     """A dry-run as ``nanoasm dry-run`` makes it: the scene and layout files, the run log
     (with the simulated world kept beside it, for resuming), the report file.
-    ``progress`` gives extra subscribers for the run (a progress line) while it runs.
-    Returns the outcome and the layout."""
+    ``progress`` gives extra subscribers for the run (a progress line) while it runs;
+    ``plan``, ``region``, ``pixels``: the reviewed plan to execute and the full scan
+    (:func:`nanoasm.harness.run_start`). Returns the outcome and the layout."""
     scene = load_scene(scene_file)
     layout = load_layout(layout_file)
-    check_fits(layout, str(layout_file), scene.params.scanner)
+    options = exec_options(scene, strategy)
+    reviewed, scan, start = run_start(layout, layout_file, scene.params.scanner, options.pixel_size, plan=plan,
+                                      region=region, pixels=pixels, align=(plan_options or PlanOptions()).align)
     meta = {"kind": "dry-run", "strategy": strategy, "seed": seed, "scene": str(scene_file),
-            "layout": str(layout_file)}
-    outcome = _logged(scene, layout, meta, log, report, progress, seed=seed,
-                      options=exec_options(scene, strategy), plan_options=plan_options,
+            "layout": str(layout_file), **start}
+    outcome = _logged(scene, layout, meta, log, report, progress, seed=seed, reviewed=reviewed, scan=scan,
+                      options=options, plan_options=plan_options,
                       scene_name=str(scene_file), layout_name=str(layout_file),
                       keep_sim=None if log.path is None else sim_state_path(log.path))
     return outcome, layout

@@ -18,7 +18,9 @@ from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
 from nanoasm.errors import InputError
 from nanoasm.executor.report import InstrumentTime, Report, WallTime
+from nanoasm.executor.reviewed_plan import ReviewedPlan, load_reviewed
 from nanoasm.executor.runlog import RunLog
+from nanoasm.executor.scan_area import ScanArea, scan_area
 from nanoasm.executor.summary import RunSummary
 from nanoasm.planner.plan import Assignment
 
@@ -75,7 +77,7 @@ def plain(o: Body, at: tuple[float, float] | None = None) -> Body:
 def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall_total: float, *,
               layout_name: str | None = None, scene_name: str | None = None, seed: int | None = None,
               objects: tuple[tuple[Body, ...], tuple[Body, ...]] | None = None,
-              ids: dict[str, str] | None = None) -> Report:
+              ids: dict[str, str] | None = None, plan: str | None = None) -> Report:
     """The report of a run from its summary: the one constructor of both harnesses.
 
     A run reports the objects it identified and those it believes in at the end (in the
@@ -84,7 +86,7 @@ def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall
     (``objects``, the layout's own frame) and which true object each identified one is (``ids``:
     identified id -> scene id), by which the assignment and the pushes are reported.
     ``instrument_total`` and ``wall_total`` are the run's seconds on the instrument and
-    of this program.
+    of this program; ``plan``: the reviewed plan file the run executed, if any.
     """
     ids = ids or {}
     if objects is None:
@@ -102,7 +104,7 @@ def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall
         wall_time=WallTime(w["identify"], w["plan"], w["execute"], wall_total),
         slots=tuple(replace(v, object=None if v.object is None else ids.get(v.object, v.object))
                     for v in summary.slots),
-        registration=summary.registration,
+        registration=summary.registration, plan=plan,
     )
 
 
@@ -113,6 +115,24 @@ def own_frame(summary: RunSummary, bodies: tuple[Body, ...]) -> tuple[Body, ...]
         return bodies
     back = summary.registration.inverse()
     return tuple(plain(back.body(b)) for b in bodies)
+
+
+def run_start(layout: Layout, layout_file, config, pixel_size: float, *, plan=None, region=None,
+              pixels: int | None = None, align: str = "rigid") -> tuple[ReviewedPlan | None, ScanArea | None, dict]:
+    """How a run of ``layout`` (file ``layout_file``) on a scanner of ``config`` (an
+    InstrumentConfig) starts, checked before anything moves: the reviewed ``plan`` file it
+    executes (:func:`~nanoasm.executor.reviewed_plan.load_reviewed`; None: it plans), the
+    full scan ``region`` and ``pixels`` ask for (:func:`~nanoasm.executor.scan_area.scan_area`,
+    at ``pixel_size`` by default; None: the layout's area centred in the range, which must
+    fit it: :func:`check_fits`), and the run log's metadata saying so."""
+    if region is None:
+        check_fits(layout, str(layout_file), config)
+    scan = scan_area(region, pixels, layout, config.xy_range, pixel_size)
+    reviewed = None if plan is None else load_reviewed(plan, layout, str(layout_file), align)
+    meta = {} if plan is None else {"plan": str(plan)}
+    if scan is not None:
+        meta["full_scan"] = f"region {' '.join(f'{v:g}' for v in scan.region)} nm, {scan.pixels} pixels a side"
+    return reviewed, scan, meta
 
 
 def check_fits(layout: Layout, source: str | None, config) -> None:

@@ -4,12 +4,14 @@ Everything comes from the log (:func:`nanoasm.executor.logread.read_log`): the l
 attachment, the plan, the pushes, checkpoints and the executor's belief, the drift
 estimate, and in a dry-run the simulated truth the harness added (``/sim/truth``). A slot's
 error is measured against that truth when the log has it, else against the executor's
-last belief. A log cut short (a killed process) is reviewed as far as it goes.
+last belief. Objects are named by the run's ids everywhere (those of its events and
+pushes); a true body carries the scene's id, shown only as the truth (``/sim/truth``'s
+``ids`` tell which identified object each is). A log cut short (a killed process) is
+reviewed as far as it goes. The plot is :mod:`nanoasm.review_plot`'s.
 """
 
 from __future__ import annotations
 
-import io
 import math
 import os
 import struct
@@ -19,7 +21,7 @@ from typing import Any
 
 from nanoasm.bodies import Body
 from nanoasm.errors import InputError
-from nanoasm.executor.documents import (CHANNELS, CHECKPOINT, DRIFT, ENVIRONMENT, FAILED_VERDICTS, PLAN, PUSH,
+from nanoasm.executor.documents import (CHANNELS, CHECKPOINT, DRIFT, ENVIRONMENT, PLAN, PUSH,
                                         RESULT, STOP, CheckpointDoc, DocumentError, DriftDoc, PushDoc, StopDoc,
                                         body_from_stored)
 from nanoasm.executor.ledger import ACTIVITIES
@@ -32,10 +34,16 @@ TRUTH = "/sim/truth"
 
 @dataclass(frozen=True)
 class SlotRow:
+    """An assigned slot: the object the run put there (the run's id), its centre error
+    against the pose it is measured on (``pose``: the true body, or the last belief), and
+    the scene's id of that true body (``truth``, None without simulated truth)."""
+
     target: str
     object: str | None
     error: float | None        # centre error, nm (None: no pose known)
     filled: bool
+    truth: str | None = None
+    pose: Body | None = None
 
 
 @dataclass
@@ -62,8 +70,11 @@ class Review:
     drift: list[tuple[float, float, float, float, float]] = field(default_factory=list)  # t dx dy sx sy
     initial: list[Body] = field(default_factory=list)     # identified objects
     final: list[Body] = field(default_factory=list)       # last belief
-    truth_initial: list[Body] = field(default_factory=list)
+    truth_initial: list[Body] = field(default_factory=list)   # true bodies, with the scene's ids
     truth_final: list[Body] = field(default_factory=list)
+    truth_ids: dict[str, str] = field(default_factory=dict)   # the run's id -> the scene's id of that body
+    true_drift: list[tuple[float, float, float]] = field(default_factory=list)   # t dx dy (the truth's)
+    scan: Any = None                                      # the first full scan (a HeightImage), if logged
     paths: list[tuple[list, str]] = field(default_factory=list)   # (tip path, verdict)
     notes: list[str] = field(default_factory=list)        # messages skipped, and why
     damage: list[str] = field(default_factory=list)       # parts of the file skipped, and what is lost
@@ -72,6 +83,13 @@ class Review:
     @property
     def filled(self) -> int:
         return sum(s.filled for s in self.slots)
+
+    def last_drift_error(self) -> float | None:
+        """How far the last drift estimate is from the true drift at its time, nm (None:
+        no truth logged for it)."""
+        if not self.drift or not self.true_drift or abs(self.drift[-1][0] - self.true_drift[-1][0]) > 1e-6:
+            return None
+        return math.dist(self.drift[-1][1:3], self.true_drift[-1][1:3])
 
 
 def _check_started(log) -> None:
@@ -156,18 +174,20 @@ def review(path: str | os.PathLike) -> Review:
     if starts and rev.end_time is not None:
         rev.total_time = rev.end_time - min(starts)
 
-    # slots: against the simulated truth when the harness logged it, else the last belief
+    # slots: against the simulated truth when the harness logged it, else the last belief;
+    # named by the run's ids either way (a true body by the identified object it is)
     truth = _truth(log, rev.notes)
     final = {b.id: b for b in rev.final}
     if "initial" in truth:
         rev.truth_initial = truth["initial"][0]
     if "final" in truth:
-        rev.truth_final, ids = truth["final"]
-        assignment = [(t, ids.get(o, o)) for t, o in assignment]
-        final = {b.id: b for b in rev.truth_final}
+        rev.truth_final, rev.truth_ids, rev.true_drift = truth["final"]
+        scene = {b.id: b for b in rev.truth_final}
+        final = {run: scene[sid] for run, sid in rev.truth_ids.items() if sid in scene}
         rev.source = "simulated truth"
     if rev.layout is not None:
-        rev.slots = _slots(rev.layout, assignment, final)
+        rev.slots = _slots(rev.layout, assignment, final, rev.truth_ids)
+    rev.scan = _scan(log, rev.notes)
     return rev
 
 
@@ -210,29 +230,48 @@ def _drift_row(doc: DriftDoc) -> tuple[float, float, float, float, float]:
     return doc.t, dx, dy, sx, sy
 
 
-def _truth(log, notes: list[str]) -> dict[str, tuple[list[Body], dict[str, str]]]:
-    """The harness's simulated truth by phase: the true bodies and which identified object
-    each one is (identified id -> scene id)."""
+def _truth(log, notes: list[str]) -> dict[str, tuple[list[Body], dict[str, str], list[tuple[float, float, float]]]]:
+    """The harness's simulated truth by phase: the true bodies, which identified object
+    each one is (identified id -> scene id), and the true drift since the run's start at
+    each drift estimate's time (``(t, dx, dy)``; logged with the final bodies)."""
     out = {}
     for m in log.topic(TRUTH):
         try:
             t = Table(m.data, "truth document")
             ids = t.table("ids", optional=True)
+            drift = [(dt.number("t"), *dt.pair("offset")) for dt in t.tables("drift")]
             out[t.string("phase")] = ([body_from_stored(bt) for bt in t.tables("objects")],
-                                      {} if ids is None else {k: ids.string(k) for k in ids.data})
+                                      {} if ids is None else {k: ids.string(k) for k in ids.data}, drift)
         except (InputError, ValueError) as err:
             notes.append(f"{TRUTH} at t = {m.t:.3f} s skipped: {err}")
     return out
 
 
-def _slots(layout, assignment: list[tuple[str, str]], final: dict[str, Body]) -> list[SlotRow]:
+def _slots(layout, assignment: list[tuple[str, str]], final: dict[str, Body],
+           truth_ids: dict[str, str]) -> list[SlotRow]:
+    """The assigned slots; ``final``: the pose each of the run's objects is measured on."""
     from nanoasm.dryrun import filled_slots
     from nanoasm.planner.plan import Assignment
 
     known = {t.id for t in layout.targets}
     pairs = [Assignment(t, o) for t, o in assignment if t in known]
     filled, errors = filled_slots(layout, pairs, final)
-    return [SlotRow(a.target, a.object, errors.get(a.target), a.target in filled) for a in pairs]
+    return [SlotRow(a.target, a.object, errors.get(a.target), a.target in filled, truth_ids.get(a.object),
+                    final.get(a.object)) for a in pairs]
+
+
+def _scan(log, notes: list[str]):
+    """The first full scan from its attachment (None when the log has none)."""
+    from nanoasm.executor.scan_attachment import FULL_SCAN_ATTACHMENT, full_scan_image
+
+    data = log.attachments.get(FULL_SCAN_ATTACHMENT)
+    if data is None:
+        return None
+    try:
+        return full_scan_image(data)
+    except ValueError as err:
+        notes.append(f"{FULL_SCAN_ATTACHMENT} skipped: {err}")
+        return None
 
 
 # -- the table ---------------------------------------------------------------------------
@@ -271,7 +310,8 @@ def print_review(rev: Review, console=None) -> None:
     slots, more = first(rev.slots)
     for s in slots:
         err = "no pose" if s.error is None else f"{s.error:.1f} nm"
-        row = f"{'filled' if s.filled else 'missed'} by {s.object}: {err} off ({rev.source})"
+        truth = "" if s.truth is None else f" (truth: scene id {s.truth})"
+        row = f"{'filled' if s.filled else 'missed'} by {s.object}{truth}: {err} off ({rev.source})"
         v = mine.get(s.target)
         if v is not None:
             said = v.state + ("" if v.error is None else f", {v.error:.1f} nm")
@@ -297,8 +337,10 @@ def print_review(rev: Review, console=None) -> None:
     if rev.drift:
         t, dx, dy, sx, sy = rev.drift[-1]
         sigma = "" if math.isnan(sx) else f" +/- ({sx:.1f}, {sy:.1f})"
+        off = rev.last_drift_error()
+        truth = "" if off is None else f"; {off:.1f} nm from the true drift"
         table.add_row("drift estimate", f"({dx:+.1f}, {dy:+.1f}){sigma} nm at t = {t / 60:.1f} min, "
-                                        f"{len(rev.drift)} update(s)")
+                                        f"{len(rev.drift)} update(s){truth}")
     console.print(table)
 
 
@@ -311,73 +353,14 @@ def _incomplete(rev: Review) -> str:
 # -- the plot ----------------------------------------------------------------------------
 
 def plot_review(rev: Review, out: str | os.PathLike) -> None:
-    """Before/after scene with the push paths, and the drift estimate over time (±σ);
-    written atomically, in the format of ``out``'s suffix (png, svg, pdf)."""
-    import matplotlib
+    """The review's picture (:func:`nanoasm.review_plot.review_figure`: the scene before and
+    after over the full scan, the largest slot errors zoomed, the drift estimate beside the
+    truth), written atomically in the format of ``out``'s suffix (png, svg, pdf); in SVG,
+    text stays text."""
+    from nanoasm.previews import write_figure
+    from nanoasm.review_plot import review_figure
 
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    from nanoasm.fileio import write_atomic
-
-    fig, axes = plt.subplots(1, 3, figsize=(16, 5.5))
-    before, after, drift = axes
-    _scene(before, rev, rev.initial, rev.truth_initial, "before: identified" +
-           (" (truth dotted)" if rev.truth_initial else ""), paths=False)
-    _scene(after, rev, rev.final, rev.truth_final, "after: belief" +
-           (" (truth dotted)" if rev.truth_final else "") + ", push paths", paths=True)
-    if rev.drift:
-        t = [r[0] / 60 for r in rev.drift]
-        for i, (label, colour) in enumerate((("dx", "tab:blue"), ("dy", "tab:orange"))):
-            v = [r[1 + i] for r in rev.drift]
-            s = [r[3 + i] for r in rev.drift]
-            drift.plot(t, v, color=colour, label=label)
-            if not all(math.isnan(x) for x in s):
-                drift.fill_between(t, [a - b for a, b in zip(v, s)], [a + b for a, b in zip(v, s)],
-                                   color=colour, alpha=0.25, label=f"{label} +/- sigma")
-        drift.legend()
-    else:
-        drift.text(0.5, 0.5, "no drift estimate in the log", ha="center", va="center", transform=drift.transAxes)
-    drift.set_xlabel("instrument time, min")
-    drift.set_ylabel("drift, nm")
-    drift.set_title("drift estimate")
-    status = "" if rev.complete else " (damaged log)" if rev.damage and rev.cut is None else " (incomplete log)"
-    fig.suptitle(f"{os.path.basename(rev.path)}: {rev.filled} slot(s) filled, {rev.pushes} push(es){status}")
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fmt = os.path.splitext(str(out))[1].lstrip(".").lower() or "png"
-    fig.savefig(buf, format=fmt, dpi=110)
-    plt.close(fig)
-    write_atomic(out, buf.getvalue())
-
-
-def _scene(ax, rev: Review, bodies: list[Body], truth: list[Body], title: str, *, paths: bool) -> None:
-    from matplotlib.patches import Polygon
-
-    if rev.layout is not None:
-        w, h = rev.layout.area
-        ax.plot([0, w, w, 0, 0], [0, 0, h, h, 0], color="0.6", lw=0.8)
-        for k in rev.layout.regions:
-            ax.add_patch(Polygon(k.polygon, closed=True, fc=(1, 0.3, 0.3, 0.15), ec="tab:red", lw=0.8))
-        for tg in rev.layout.targets:
-            _outline(ax, tg, ec="tab:blue", ls="-", lw=1.2)
-            ax.annotate(tg.id, tg.at, color="tab:blue", fontsize=7, ha="center", va="center")
-    for b in truth:
-        _outline(ax, b, ec="tab:purple", ls=":", lw=1.0)
-    for b in bodies:
-        _outline(ax, b, ec="black", ls="-", lw=0.8, fc=(1.0, 0.8, 0.2, 0.6))
-    if paths:
-        for pts, verdict in rev.paths:
-            if len(pts) >= 2:
-                xs, ys = zip(*((p[0], p[1]) for p in pts))
-                colour = "tab:red" if verdict in FAILED_VERDICTS else "tab:green"
-                ax.plot(xs, ys, color=colour, lw=1.0)
-                ax.plot(xs[-1], ys[-1], marker=".", color=colour)
-    ax.set_aspect("equal")
-    ax.autoscale_view()
-    ax.set_title(title)
-    ax.set_xlabel("x, nm")
-    ax.set_ylabel("y, nm")
+    write_figure(review_figure(rev), out)
 
 
 def _outline(ax, b: Body, **style) -> None:

@@ -23,21 +23,26 @@ from nanoasm.executor.lever_file import InstrumentLever
 from nanoasm.executor.report import Report
 from nanoasm.executor.resume import ResumePoint, ShiftedClock, clock_shift, resume_point, resumed_log_path
 from nanoasm.executor.strategy import ExecOptions
-from nanoasm.harness import LogTo, check_fits, report_of, run_logs, warn
+from nanoasm.executor.reviewed_plan import ReviewedPlan
+from nanoasm.executor.scan_area import ScanArea
+from nanoasm.harness import LogTo, report_of, run_logs, run_start, warn
 from nanoasm.planner import PlanOptions
 
 
 def run(layout: Layout, instrument, *, options: ExecOptions | None = None,
         plan_options: PlanOptions | None = None, subscribers: list[Subscriber] | None = None,
-        layout_name: str | None = None, resume: ResumePoint | None = None, lever: InstrumentLever | None = None) -> Report:
+        layout_name: str | None = None, resume: ResumePoint | None = None, lever: InstrumentLever | None = None,
+        reviewed: ReviewedPlan | None = None, scan: ScanArea | None = None) -> Report:
     """Assemble ``layout`` on ``instrument`` (open; parked whatever happens), compensating
-    with ``lever`` (the instrument file's; None: the seed's lever, for tests).
+    with ``lever`` (the instrument file's; None: the seed's lever, for tests), starting
+    from the ``reviewed`` plan (None: a plan of its own) after a full scan of ``scan``
+    (None: the layout's area centred in the scanner's range).
 
     ``resume``: a stopped run's last checkpoint
     (:func:`~nanoasm.executor.resume.resume_point`) to go on from; the instrument's clock
     then goes on from the stopped run's. The report's instrument time is this run's own.
     """
-    assembly = Assembly(layout, options, plan_options, source=layout_name,
+    assembly = Assembly(layout, options, plan_options, source=layout_name, reviewed=reviewed, scan=scan,
                         **({} if lever is None else {"lever": lever.lever, "baselines": lever.baselines}))
     inst = instrument
     if resume is not None:          # the clock goes on from the stopped run's
@@ -47,18 +52,21 @@ def run(layout: Layout, instrument, *, options: ExecOptions | None = None,
                  else assembly.procedure(inst.config))
     summary = RunEngine(inst, list(subscribers or ())).run(procedure)
     total = inst.clock() - t0
-    return report_of(summary, layout, total, sum(summary.wall.values()), layout_name=layout_name)
+    return report_of(summary, layout, total, sum(summary.wall.values()), layout_name=layout_name,
+                     plan=None if reviewed is None else reviewed.source)
 
 
 def run_files(instrument_file: Path, layout_file: Path | None = None, *, strategy: str = "full",
               resume_from: Path | None = None, log: LogTo = LogTo(), report: Path | None = None,
-              progress: AbstractContextManager | None = None, plan_options: PlanOptions | None = None) -> Report:
+              progress: AbstractContextManager | None = None, plan_options: PlanOptions | None = None,
+              plan: Path | None = None, region=None, pixels: int | None = None) -> Report:
     """A run as ``nanoasm run`` makes it: the hardware backend of ``instrument_file``,
     the layout file or, with ``resume_from``, the layout, strategy and last checkpoint of
     that stopped run's log (logged to ``log.path`` or else a new log beside it), the run
     log with the instrument file attached, the report file. ``progress`` gives extra
     subscribers for the run (a progress line) while it runs; ``plan_options``: how to plan
-    (and register a layout with marks: ``align``)."""
+    (and register a layout with marks: ``align``); ``plan``, ``region``, ``pixels``: the
+    reviewed plan to execute and the full scan (:func:`nanoasm.harness.run_start`)."""
     from nanoasm.executor.instrument_file import load_instrument_config
 
     point = None
@@ -71,13 +79,15 @@ def run_files(instrument_file: Path, layout_file: Path | None = None, *, strateg
     else:
         layout = load_layout(layout_file)
     config = load_instrument_config(instrument_file)
-    check_fits(layout, str(layout_file), config.scanner)
+    options = ExecOptions(strategy=strategy)
+    reviewed, scan, start = run_start(layout, layout_file, config.scanner, options.pixel_size, plan=plan,
+                                      region=region, pixels=pixels, align=(plan_options or PlanOptions()).align)
     if config.lever is None:        # the seed's lever would mis-aim every push on another lever
         raise InputError(str(instrument_file), "cantilever", "missing table: a run compensates the tip's deflection "
                          "with the lever's constants; measure them with 'nanoasm calibrate --instrument "
                          f"{instrument_file} -o cal.toml' and paste its tables into the file")
-    options = ExecOptions(strategy=strategy)
-    meta = {"kind": "run", "strategy": strategy, "layout": str(layout_file), "instrument": str(instrument_file)}
+    meta = {"kind": "run", "strategy": strategy, "layout": str(layout_file), "instrument": str(instrument_file),
+            **start}
     if resume_from is not None:
         meta["resumed_from"] = str(resume_from)
     suffix = instrument_file.suffix.lower()
@@ -86,7 +96,7 @@ def run_files(instrument_file: Path, layout_file: Path | None = None, *, strateg
     with (open_hardware(config) as hardware, run_logs(log, layout, meta, attachments=attach, carry=carry) as logs,
           progress or nullcontext([]) as shown):
         rep = run(layout, hardware, options=options, subscribers=[*shown, *logs], layout_name=str(layout_file),
-                  resume=point, plan_options=plan_options, lever=config.lever)
+                  resume=point, plan_options=plan_options, lever=config.lever, reviewed=reviewed, scan=scan)
     if report is not None:
         rep.save(report)
     return rep

@@ -305,3 +305,13 @@ def test_review_maps_the_layout_into_the_logs_frame(tmp_path, capsys):
     rev = review(log)
     assert rev.filled == 3 and rev.source == "simulated truth"
     assert rev.layout.registration is not None and all(r.error < 20 for r in rev.slots)
+    # Foxglove's /layout: the chip's frame at the start, then where the run has the slots
+    from nanoasm.executor.logread import read_log
+
+    first, *later = read_log(log).topic("/layout")
+    assert len(later) == 1
+    drawn = {e.id: e.texts[0].pose.position for e in later[0].data.entities if e.id.startswith("slot:")}
+    chip = {e.id: e.texts[0].pose.position for e in first.data.entities if e.id.startswith("slot:")}
+    for i, p in enumerate(SLOTS):
+        assert math.dist((drawn[f"slot:s{i + 1}"].x, drawn[f"slot:s{i + 1}"].y), p) < 20
+        assert math.dist((chip[f"slot:s{i + 1}"].x, chip[f"slot:s{i + 1}"].y), p) > 100

@@ -203,27 +203,24 @@ def test_outputs_are_written_with_the_usual_permissions(tmp_path):
 def test_the_progress_line_names_the_kind_of_run(monkeypatch, label):
     from rich.console import Console
 
-    from nanoasm import cli
+    from nanoasm import cli, progress
 
-    shown: list[str] = []
-
-    class Status:
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-        def update(self, text: str) -> None:
-            shown.append(text)
-
+    bars = []
+    real = progress.progress_bar
+    monkeypatch.setattr(progress, "progress_bar", lambda console: bars.append(real(console)) or bars[-1])
     monkeypatch.setattr(Console, "is_terminal", property(lambda self: True))
-    monkeypatch.setattr(Console, "status", lambda self, text: shown.append(text) or Status())
+    shown: list[str] = []
     with cli._run_progress(label) as subscribers:
-        for follow in subscribers:
-            follow("event", {"t": 1.0, "level": "info", "text": "push 1 of 6"})
-            follow("checkpoint", {"t": 2.0, "counts": {"pushes": 1}, "remaining": ["a", "b"]})
-    assert shown == [f"{label}: full scan", f"{label}: push 1 of 6", f"{label}: 1 push(es) done, 2 to go"]
+        task = bars[0].tasks[0]
+        shown.append(task.description)
+        for topic, doc in (("progress", {"step": "phase", "text": "full scan"}),
+                           ("event", {"t": 1.0, "level": "info", "text": "push 1 of 6"}),
+                           ("checkpoint", {"t": 2.0, "counts": {"pushes": 1}, "remaining": ["a", "b"]})):
+            for follow in subscribers:
+                follow(topic, doc)
+            shown.append(f"{task.description}: {task.completed}/{task.total}")
+    assert shown == [f"{label}: starting", f"{label}: full scan: 0/None", f"{label}: full scan - push 1 of 6: 0/None",
+                     f"{label}: full scan - push 1 of 6: 1/3"]
 
 
 @pytest.mark.parametrize("args,fragment", [
