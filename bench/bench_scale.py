@@ -30,7 +30,6 @@ its own. Per run:
 from __future__ import annotations
 
 import argparse
-import contextlib
 import datetime
 import json
 import os
@@ -158,10 +157,11 @@ Not changed here (files other sessions are changing, or beyond this change):
   `MAX_LOG_BYTES`); the executor's `environment()` and reference choice are O(N) a push
   too. They make the executor's cost a push rise from 37 ms (N = 30-100) to 53 ms (N = 300).
 - **fill**: the table's fill is the truth's (`truly_filled`: the slots true objects fill).
-  The dry-run's own `filled` (by the run's assignment) counts fewer on large areas (72 of
-  90 on `scale300` seed 1, whose truth fills 90 and whose check scans 89), probably
-  because `match_ids` pairs identified and true objects within 500 nm while the drift over
-  a 36-min full scan reaches 650 nm (not verified).
+  The dry-run's own `filled` (by the run's assignment) counted fewer on large areas (72 of
+  90 on `scale300` seed 1, whose truth fills 90 and whose check scans 89) while `match_ids`
+  paired identified and true objects by their raw full-scan positions, which the drift over
+  a long full scan had moved by more than their spacing (on `wide` seed 6, 800 nm); it now
+  takes each row's true drift out first (`nanoasm.dryrun.row_drift`).
 """
 
 

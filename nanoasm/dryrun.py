@@ -204,21 +204,42 @@ def _layout_frame(sim: SimulatedAFM, summary: RunSummary, bodies: tuple[Body, ..
     return tuple(plain(b, (b.at[0] + dx, b.at[1] + dy)) for b in bodies)
 
 
-def match_ids(found, truth: tuple[Body, ...], reach: float = 500.0) -> dict[str, str]:
+def row_drift(sim: SimulatedAFM, summary: RunSummary):
+    """``at -> (dx, dy)``: the true drift (nm, since the run's start) that the first full
+    scan's row through layout position ``at`` carried, from the simulated world's record
+    of that scan (none recorded, as in a world restored from a state before it: zero)."""
+    if sim.first_scan is None:
+        return lambda at: (0.0, 0.0)
+    t0, y0, pixel, line, lines = sim.first_scan
+    o0 = np.asarray(sim.true_offset(summary.epoch), float)
+    oy = float(summary.origin[1])
+
+    def shift(at) -> tuple[float, float]:
+        row = min(max((float(at[1]) + oy - y0) / pixel, 0.0), lines - 1.0)
+        d = np.asarray(sim.true_offset(t0 + (row + 0.5) * line), float) - o0
+        return float(d[0]), float(d[1])
+
+    return shift
+
+
+def match_ids(found, truth: tuple[Body, ...], reach: float = 500.0, shift=None) -> dict[str, str]:
     """Identified object id -> the scene's id of the true object it is.
 
     A full scan takes minutes, so the objects it shows are shifted by the drift of the
-    time their line was recorded (hundreds of nm): they are matched as a whole, by
-    ``linear_sum_assignment`` over kind, size and distance, pairs farther than ``reach``
-    left out. Objects that identification invented keep their own ids.
+    time their line was recorded (hundreds of nm, more than the objects' spacing on a
+    wide area): ``shift(at)`` gives that drift (:func:`row_drift`), taken out before they
+    are matched as a whole, by ``linear_sum_assignment`` over kind, size and distance,
+    pairs farther than ``reach`` left out. Objects that identification invented keep
+    their own ids.
     """
     found = list(found)
     if not found or not truth:
         return {}
     cost = np.full((len(found), len(truth)), 1e9)
     for i, o in enumerate(found):
+        dx, dy = (0.0, 0.0) if shift is None else shift(o.at)
         for j, b in enumerate(truth):
-            d = math.dist(o.at, b.at)
+            d = math.dist((o.at[0] - dx, o.at[1] - dy), b.at)
             if o.kind == b.kind and d <= reach:
                 cost[i, j] = d + 20.0 * abs(o.diameter - b.diameter)
     rows, cols = linear_sum_assignment(cost)
@@ -316,7 +337,7 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
     initial = _layout_frame(sim, summary, initial_sample)
     final = _layout_frame(sim, summary, sim.truth())
     total = sim.clock() - start_clock
-    ids = match_ids(summary.env.objects, initial)
+    ids = match_ids(summary.env.objects, initial, shift=row_drift(sim, summary))
     drift = drift_log.against(sim, summary.epoch)
     for log in logs:
         _log_truth(log, initial, final, ids, drift, sim.clock())

@@ -139,6 +139,31 @@ def test_a_move_and_its_return_creep_away():
     assert np.all(np.diff(cx) < 0) and cx[-1] < 0.05 * cx[0]
 
 
+def test_a_move_that_ends_with_its_chunk_creeps_from_when_xy_stopped():
+    """A streamed travel that ends with its chunk, then a pause (a 2 s mode switch) before
+    a scan line elsewhere: the travel is recorded where XY stopped, ``stop_samples`` after,
+    not when the instrument acted again; a chunk that goes on without a pause ends no move."""
+    from nanoasm.world.sim.stream import MoveTracker
+
+    m = still(min_step=100.0)
+    tracker = MoveTracker(m, np.zeros(2), stop_samples=50)
+    n, rate = 200, 1000.0
+    nm = np.column_stack([np.linspace(10.0, 2000.0, n), np.zeros(n), np.zeros(n)])
+    codes = np.round(nm * 10).astype(np.int64)
+    t = 1.0 + np.arange(1, n + 1) / rate
+    tracker.track(nm, codes, np.zeros(3, np.int64), t)
+    assert m._moves_t == []                        # still moving when the chunk ended
+    more = np.column_stack([np.linspace(2010.0, 2500.0, 50), np.zeros(50), np.zeros(50)])
+    tracker.track(more, np.round(more * 10).astype(np.int64), codes[-1], t[-1] + np.arange(1, 51) / rate)
+    assert m._moves_t == []                        # no pause: the same move goes on
+    t_end = t[-1] + 50 / rate
+    tracker.jump(t_end + 2.0, np.array([2500.0, 600.0]))
+    assert m._moves_t[0] == pytest.approx(t_end + 50 / rate)
+    np.testing.assert_allclose(m._moves_s[0], (2500.0, 0.0))
+    assert m._moves_t[1] == pytest.approx(t_end + 2.0)   # then the jump to the line, now
+    np.testing.assert_allclose(m._moves_s[1], (0.0, 600.0))
+
+
 def test_bad_queries_are_refused():
     m = model(0)
     with pytest.raises(ValueError, match="finite"):

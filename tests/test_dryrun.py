@@ -153,3 +153,19 @@ def test_the_run_harness_goes_on_from_a_checkpoint(bowtie):
                   resume=ResumePoint("stopped.mcap", state, layout, {}))
     assert resumed.assignment == whole.assignment and resumed.counts == whole.counts
     assert 0 < resumed.instrument_time.total < whole.instrument_time.total
+
+
+def test_ids_are_matched_with_each_row_s_drift_taken_out():
+    """A long full scan shifts what its later rows show by more than the objects' spacing
+    (800 nm over a 10 µm scan on `wide`): matched by raw position, objects take their
+    neighbours' ids; with each row's true drift taken out, each finds itself."""
+    from nanoasm.bodies import Body
+    from nanoasm.dryrun import match_ids
+
+    truth = tuple(Body(f"s{k}", "particle", (1000.0, 300.0 * k), 60.0) for k in range(1, 9))
+    # the drift a row carried grows with the row: half its raw y, so raw = 2 x true
+    found = tuple(Body(f"o{k}", "particle", (1000.0, 2 * b.at[1]), 60.0) for k, b in enumerate(truth, start=1))
+    right = {f"o{k}": f"s{k}" for k in range(1, 9)}
+    assert match_ids(found, truth, shift=lambda at: (0.0, 0.5 * at[1])) == right
+    wrong = match_ids(found, truth)
+    assert wrong["o1"] == "s2" and len(set(wrong.items()) & set(right.items())) <= 1

@@ -102,9 +102,18 @@ def test_a_round_trip_through_json_is_exact():
     assert sim._drift.drift._moves_t and sim._world.pushes >= 2 and sim._world.blunted >= 2
 
 
+def _settled(sim: SimulatedAFM, near) -> np.ndarray:
+    """Bring the tip from its rest (tens of µm away) near ``near`` and let its creep die
+    down over a full scan; returns where the sample then appears shifted (nm), to aim by."""
+    sim.scan_line((near[0] - 400.0, near[1] - 400.0), (near[0] - 300.0, near[1] - 400.0), 8)
+    sim.full_scan(256)
+    return np.asarray(sim.true_offset(sim.clock() + 2.0))      # the push starts after a mode switch
+
+
 def test_a_world_restored_mid_push_goes_on_bit_for_bit():
     sim = _busy_world()
-    codes = _push_codes(sim, (1700, 2000), (2300, 2000))
+    off = _settled(sim, (2000.0, 2000.0))
+    codes = _push_codes(sim, np.array((1700.0, 2000.0)) + off, np.array((2300.0, 2000.0)) + off)
     k = 0
     while not sim._world.episodes:               # into the push, the particle on the tip
         sim.write(codes[k:k + 40])

@@ -132,6 +132,9 @@ class SimulatedAFM:
         self._piezo_xy = rest[:2].copy()
         self._state = TipState(rest[:2].copy(), (float(rest[0]), float(rest[1])), float(rest[2]))
         self._mode = TAPPING
+        # the first full scan's rows for the harness (never the executor's to read): start
+        # time, its region's lower edge (scanner nm), pixel size, line time, lines
+        self.first_scan: tuple[float, float, float, float, int] | None = None
         self._moves = MoveTracker(self._drift, rest[:2], round(self.params.sim.stop_time * cfg.sample_rate))
         a, b = self._model.baselines(np.array([rest[0]]), np.array([rest[2]]))
         self._signals = (float(a[0]), float(b[0]))
@@ -202,6 +205,8 @@ class SimulatedAFM:
         side = max(x1 - x0, y1 - y0)
         self._to_tapping("full_scan")
         timing = self.params.timing
+        if self.first_scan is None:
+            self.first_scan = (self._clock.now, y0, side / int(pixels), timing.full_scan_line, int(pixels))
         image = render_scan(self._surface_now(), side / int(pixels), tip=self._world.tip,
                             window=(x0, y0, side, side), noise_rms=self.params.noise.height_rms,
                             line_offset_prob=self.params.sim.line_offset_prob,

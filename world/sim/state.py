@@ -84,13 +84,16 @@ def sim_state(sim: SimulatedAFM) -> dict:
         "clock": {"start_ns": int(sim._clock._start_ns), "ns": {a: int(v) for a, v in sim._clock._ns.items()}},
         "rng": {name: g.bit_generator.state for name, g in _streams(sim).items()},
         "instrument": {"mode": sim._mode, "last": [int(v) for v in sim._last],
+                       **({} if sim.first_scan is None else {"first_scan": [float(v) for v in sim.first_scan]}),
                        "piezo_xy": None if sim._piezo_xy is None else _xy(sim._piezo_xy),
                        "signals": _xy(sim._signals)},
         "tip": {"piezo": _xy(tip.piezo), "tip": _xy(tip.tip), "z": float(tip.z), "sl_bar": float(tip.sl_bar),
                 "ride": float(tip.ride), "motion": _xy(tip.motion), "f_lat": float(tip.f_lat)},
         "drift": {"epoch": float(dm.epoch), "moves_t": [float(v) for v in dm._moves_t],
                   "moves_s": [_xy(s) for s in dm._moves_s]},
-        "moves": {"start": _xy(sim._moves.start), "still": int(sim._moves.still)},
+        "moves": {"start": _xy(sim._moves.start), "still": int(sim._moves.still),
+                  **({} if sim._moves.rest is None else
+                     {"rest": [float(sim._moves.rest[0]), float(sim._moves.rest[1]), *_xy(sim._moves.rest[2])]})},
         "world": {"tip_radius": float(w.tip_radius), "lag": _xy(w.lag), "version": int(w.version),
                   "pushes": int(w.pushes), "slips": int(w.slips), "blunted": int(w.blunted),
                   "steps": int(w.steps), "pair_tests": int(c.pair_tests)},
@@ -152,7 +155,11 @@ def _restore(scene, t: Table) -> SimulatedAFM:
 
 def _instrument(sim: SimulatedAFM, t: Table) -> None:
     """The DAC, the mode, the tip and the creep's moves."""
-    ins = _table(t, "instrument", "mode", "last", "piezo_xy", "signals")
+    ins = t.table("instrument")
+    ins.check_keys(required=("mode", "last", "piezo_xy", "signals"), optional=("first_scan",))
+    if "first_scan" in ins.data:                 # absent: none yet, or an older state
+        f = _floats(ins, "first_scan", (5,))
+        sim.first_scan = (float(f[0]), float(f[1]), float(f[2]), float(f[3]), int(f[4]))
     sim._mode = ins.string("mode", choices=(TAPPING, CONTACT))
     last = ins.array("last", min_len=3, max_len=3)
     sim._last = np.array([_code(ins, f"last[{k + 1}]", v, sim.config.max_code) for k, v in enumerate(last)],
@@ -169,9 +176,12 @@ def _instrument(sim: SimulatedAFM, t: Table) -> None:
     times = _floats(drift, "moves_t", (None,))
     steps = _floats(drift, "moves_s", (len(times), 2))
     dm.set_moves(times, steps)
-    moves = _table(t, "moves", "start", "still")
+    moves = t.table("moves")
+    moves.check_keys(required=("start", "still"), optional=("rest",))
     sim._moves.start = np.array(moves.pair("start"))
     sim._moves.still = moves.integer("still", nonnegative=True)
+    rest = _floats(moves, "rest", (4,)) if "rest" in moves.data else None     # absent: none open, or an older state
+    sim._moves.rest = None if rest is None else (float(rest[0]), float(rest[1]), np.asarray(rest[2:], float))
 
 
 def _world(sim: SimulatedAFM, t: Table) -> None:

@@ -185,6 +185,11 @@ class MoveTracker:
     ``[creep] min_step`` is not recorded and does not restart the chain: its
     displacement is carried into the next move, so every displacement creeps (creep is
     linear in the step) and only its attribution time is coarsened.
+
+    A chunk that ends while XY is still moving leaves the move open; if the next chunk or
+    scan line comes after a pause (a mode switch, a settle), XY was at rest through it,
+    so the move is recorded where and ``stop_samples`` after XY stopped, not when the
+    instrument acts again (a 2 s mode switch would otherwise start its creep late).
     """
 
     def __init__(self, drift: DriftModel, start_xy: np.ndarray, stop_samples: int):
@@ -192,12 +197,26 @@ class MoveTracker:
         self.start = np.asarray(start_xy, float).copy()
         self.stop = max(1, int(stop_samples))
         self.still = 0
+        self.rest: tuple[float, float, np.ndarray] | None = None   # last sample: (t, period, xy)
 
     def jump(self, t: float, xy: np.ndarray) -> None:
         """The instrument itself took XY to ``xy`` at ``t`` (a scan line): the move from
         where the last one ended is recorded now, and XY counts as at rest there."""
+        self._settle(float(t))
         self._end(float(t), np.asarray(xy, float))
         self.still = self.stop
+        self.rest = None
+
+    def _settle(self, t_next: float) -> None:
+        """Before acting again at ``t_next``: an open move whose XY stopped with the last
+        chunk ended ``stop_samples`` after that, if the pause was as long."""
+        if self.rest is None or self.still >= self.stop:
+            return
+        t_last, period, xy = self.rest
+        t_end = t_last + (self.stop - self.still) * period
+        if t_next > t_end + 0.5 * period:
+            self._end(t_end, xy)
+            self.still = self.stop
 
     def _end(self, t: float, xy: np.ndarray) -> None:
         d = xy - self.start
@@ -206,6 +225,9 @@ class MoveTracker:
 
     def track(self, nm: np.ndarray, codes: np.ndarray, previous: np.ndarray, t: np.ndarray) -> None:
         """Samples ``codes`` (their nm ``nm`` and times ``t``) played after ``previous``."""
+        period = float(t[1] - t[0]) if t.size > 1 else (self.rest[1] if self.rest is not None else 0.0)
+        if period > 0.0:
+            self._settle(float(t[0]) - period)
         prev = np.vstack([previous[None, :2], codes[:-1, :2]])
         still = np.all(codes[:, :2] == prev, axis=1)
         idx = np.arange(still.size)
@@ -214,3 +236,5 @@ class MoveTracker:
         for k in np.flatnonzero(count == self.stop):
             self._end(float(t[k]), nm[k, :2])
         self.still = int(count[-1])
+        if period > 0.0:
+            self.rest = (float(t[-1]), period, nm[-1, :2].copy())
