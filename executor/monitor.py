@@ -11,7 +11,9 @@ Forces follow eq. 3.11: ``F_n = k K_n S̄n`` and the lateral force ``(k_l K_l / 
 * contact: S̄n reaches half the preload's deflection;
 * slip-over: after contact, S̄n collapses below ``slip_fraction`` of the contact level
   for a few samples (the tip went over the object, Fig. 3.20);
-* stuck: the lateral force stays beyond ``force_limit`` (the object does not move).
+* stuck: the lateral force, less the tip's own sliding friction on the substrate
+  ``μ_ts F_n`` (the instrument file's ``[friction] mu_ts``, seed §3.4.3), stays beyond
+  ``force_limit`` (the object does not move).
 """
 
 from __future__ import annotations
@@ -55,8 +57,9 @@ class PushMonitor:
     """Watches the signals of one push, block by block."""
 
     def __init__(self, preload: float, *, lever: Cantilever = SEED_LEVER, force_limit: float = 300.0,
-                 slip_fraction: float = 0.4, baselines: BaselineMaps | None = None):
+                 slip_fraction: float = 0.4, baselines: BaselineMaps | None = None, friction: float = 0.0):
         self.lever = lever
+        self.friction = friction                          # μ_ts: the tip's own lateral force per F_n
         self.baselines = baselines
         self.level = preload / lever.normal_gain          # S̄n in contact at the preload, V
         self.force_limit = force_limit
@@ -91,6 +94,7 @@ class PushMonitor:
         """Verdict on the push samples of one block (in order), taken at scanner ``xy``."""
         sn, sl = self.compensated(s_n, s_l, xy)
         f_l = self.lever.lateral_gain * sl
+        f_n = self.lever.spring_constant * self.lever.normal_gain * sn
         if f_l.size:
             self.peak = max(self.peak, float(np.max(np.abs(f_l))))
         start = 0
@@ -103,7 +107,8 @@ class PushMonitor:
             start = touch
         self.contact_samples += sn.size - start
         slip = _run_start(sn[start:] < self.slip_fraction * self.level)
-        stuck = _run_start(np.abs(f_l[start:]) > self.force_limit)
+        resist = np.abs(f_l[start:]) - self.friction * np.maximum(f_n[start:], 0.0)   # the object's share
+        stuck = _run_start(resist > self.force_limit)
         firsts = [(i, s) for i, s in ((slip, "slipped"), (stuck, "stuck")) if i is not None]
         if firsts:
             i, status = min(firsts)

@@ -102,7 +102,8 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     pending = ctx.drift.pending_travel(dac, current, ctx.config)
     if pending:     # the travel to the push creeps while the push runs: follow it
         dac = plan_dac(moves, cfg, current, t0=t0, drift=ctx.drift.predicted(t0, pending), lever=lever)
-    monitor = PushMonitor(cfg.preload, lever=lever, force_limit=ctx.options.force_limit, baselines=ctx.baselines)
+    monitor = PushMonitor(cfg.preload, lever=lever, force_limit=ctx.options.force_limit, baselines=ctx.baselines,
+                          friction=ctx.options.substrate_friction)
     verdict = None
     n_push = n_other = 0
     ends = {TRAVEL: None, PUSH: None}

@@ -121,6 +121,11 @@ class ExecOptions:
         DAC samples per streamed chunk.
     force_limit : float
         Lateral force, nN, beyond which a push is stopped as stuck.
+    substrate_friction : float
+        ``μ_ts``, the tip's friction coefficient on the substrate (the instrument file's
+        ``[friction] mu_ts``, a dry-run's calibration): the lateral force ``μ_ts F_n`` the
+        tip feels sliding on the substrate is not the object's resistance, so the stuck
+        test leaves it out. 0: all of it counts.
     """
 
     strategy: Strategy = param(Strategy.FULL, "", "execution strategy")
@@ -166,6 +171,8 @@ class ExecOptions:
     chunk: int = param(4096, "-", "DAC samples per streamed chunk", lo=16)
     force_limit: float = param(300.0, "nN", "lateral force beyond which a push is stopped as stuck",
                                positive=True)
+    substrate_friction: float = param(0.0, "-", "tip-substrate friction coefficient mu_ts (the stuck test "
+                                      "leaves the tip's own friction out)", nonnegative=True, hi=2.0)
 
     def __post_init__(self) -> None:
         validate(self)

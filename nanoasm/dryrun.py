@@ -317,8 +317,10 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
         cal, lever = None, {}
         warn([f"the simulated lever's calibration failed ({exc}): compensating with the dissertation's "
               f"nominal lever"])
-    assembly = Assembly(layout, options or exec_options(scene), plan_options, source=layout_name,
-                        reviewed=reviewed, scan=scan, **lever)
+    options = options or exec_options(scene)
+    if cal is not None:             # the tip's own friction on the substrate, as calibrated
+        options = replace(options, substrate_friction=max(cal.values["mu_ts"].value, 0.0))
+    assembly = Assembly(layout, options, plan_options, source=layout_name, reviewed=reviewed, scan=scan, **lever)
     drift_log, push_log = _DriftLog(), _PushLog(sim)
     subscribers = [*(subscribers or ()), drift_log, push_log]
     if keep_sim is not None:

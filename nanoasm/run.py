@@ -79,7 +79,8 @@ def run_files(instrument_file: Path, layout_file: Path | None = None, *, strateg
     else:
         layout = load_layout(layout_file)
     config = load_instrument_config(instrument_file)
-    options = ExecOptions(strategy=strategy)
+    mu_ts = None if config.lever is None else config.lever.mu_ts
+    options = ExecOptions(strategy=strategy, substrate_friction=mu_ts or 0.0)
     reviewed, scan, start = run_start(layout, layout_file, config.scanner, options.pixel_size, plan=plan,
                                       region=region, pixels=pixels, align=(plan_options or PlanOptions()).align)
     if config.lever is None:        # the seed's lever would mis-aim every push on another lever

@@ -278,3 +278,23 @@ def test_a_pattern_counts_one_local_scan_and_its_time_apart_from_travel(dx, dy):
     assert ctx.ledger.times["local_scan"] + ctx.ledger.times["travel"] == pytest.approx(fake.t)
     assert ctx.scan_ref == 0.0                      # the first line's time: no travel before it
     assert fake.lines[1][0] == pytest.approx(tuple(start + (0.0, 5.0)))   # no drift: lines unshifted
+
+
+def test_the_stuck_test_leaves_out_the_tips_own_friction_on_the_substrate():
+    """At a normal force F_n the tip sliding on the substrate alone feels μ_ts F_n
+    sideways: a lateral force just over the limit is the object's resistance only past
+    that share (the instrument file's ``[friction] mu_ts``)."""
+    from nanoasm.executor.monitor import PushMonitor
+    from nanoasm.world.cantilever import SEED_LEVER as lever
+
+    f_n = 50.0                                           # nN, pressed down
+    s_n = np.full(40, f_n / (lever.spring_constant * lever.normal_gain))
+    # over the limit by half μ F_n, the normal signal's cross-talk on the lateral added
+    s_l = np.full(40, (300.0 + 0.5 * 0.1 * f_n) / lever.lateral_gain) + lever.crosstalk * s_n
+    for friction, status in ((0.0, "stuck"), (0.1, "pushing")):
+        mon = PushMonitor(f_n * 0.9, lever=lever, force_limit=300.0, friction=friction)
+        mon.set_baseline(np.zeros(4), np.zeros(4))
+        assert mon.check(s_n, s_l).status == status
+    assert ExecOptions().substrate_friction == 0.0
+    with pytest.raises(ValueError):
+        ExecOptions(substrate_friction=-0.1)
