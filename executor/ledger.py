@@ -8,8 +8,9 @@ from dataclasses import dataclass, field
 
 from .report import Counts
 
-#: Activities the instrument's time is split into, s.
-ACTIVITIES = ("full_scan", "local_scan", "push", "travel")
+#: Activities the instrument's time is split into, s: ``mode_switch``, the approaches from
+#: tapping to contact before pushes (a local scan's switch back is in its own time).
+ACTIVITIES = ("full_scan", "local_scan", "push", "travel", "mode_switch")
 #: Stages of this program's own compute, wall-clock s.
 STAGES = ("identify", "plan", "execute")
 #: What the drift measurements' instrument time went on (within the activities), s:

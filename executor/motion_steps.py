@@ -126,6 +126,9 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
             if v.failed:
                 verdict = v
                 break
+    # what the instrument took beyond the samples streamed: the approach into contact
+    t_end = yield Msg("clock")
+    ctx.ledger.times["mode_switch"] += max(t_end - t0 - (n_push + n_other) / cfg.sample_rate, 0.0)
     for end in ends.values():
         if end is not None:
             _moved(ctx, current, *end)

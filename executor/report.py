@@ -31,13 +31,16 @@ class Counts:
 
 @dataclass(frozen=True)
 class InstrumentTime:
-    """Seconds the instrument spends, by activity."""
+    """Seconds the instrument spends, by activity: the parts add up to ``total``
+    (``mode_switch``: the approaches into contact before pushes; absent from reports
+    written before it, read as 0)."""
 
     full_scan: float = 0.0
     local_scan: float = 0.0
     push: float = 0.0
     travel: float = 0.0
     total: float = 0.0
+    mode_switch: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -54,12 +57,16 @@ def _record_dict(rec) -> dict:
     return {f.name: getattr(rec, f.name) for f in fields(rec)}
 
 
+#: Record fields that reports written before them lack (read as their default).
+_LATER = {"mode_switch"}
+
+
 def _record(t: Table, name: str, cls, *, integer: bool):
     rt = t.table(name)
     names = [f.name for f in fields(cls)]
-    rt.check_keys(required=names)
+    rt.check_keys(required=[n for n in names if n not in _LATER], optional=_LATER & set(names))
     get = rt.integer if integer else rt.number
-    return cls(**{n: get(n, nonnegative=True) for n in names})
+    return cls(**{n: get(n, nonnegative=True) for n in names if n in rt.data or n not in _LATER})
 
 
 @dataclass(frozen=True)

@@ -100,7 +100,8 @@ def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall
         initial_objects=objects[0], final_objects=objects[1],
         assignment=tuple(Assignment(a.target, ids.get(a.object, a.object)) for a in summary.assignment),
         pushed=tuple(ids.get(p, p) for p in summary.pushed), unfilled=summary.unfilled, counts=summary.counts,
-        instrument_time=InstrumentTime(t["full_scan"], t["local_scan"], t["push"], t["travel"], instrument_total),
+        instrument_time=InstrumentTime(t["full_scan"], t["local_scan"], t["push"], t["travel"], instrument_total,
+                                       t.get("mode_switch", 0.0)),
         wall_time=WallTime(w["identify"], w["plan"], w["execute"], wall_total),
         slots=tuple(replace(v, object=None if v.object is None else ids.get(v.object, v.object))
                     for v in summary.slots),

@@ -87,7 +87,8 @@ def test_review_matches_the_dry_run(logged):
     assert len(rev.failures) == len(out.summary.failures)
     t = out.report.instrument_time
     assert rev.times == pytest.approx({"full_scan": t.full_scan, "local_scan": t.local_scan, "push": t.push,
-                                       "travel": t.travel})
+                                       "travel": t.travel, "mode_switch": t.mode_switch})
+    assert sum(rev.times.values()) == pytest.approx(t.total, rel=1e-3)      # every second accounted for
     assert rev.total_time == pytest.approx(t.total, abs=1.0)
     assert rev.drift and rev.drift[-1][3] > 0          # the kalman filter's sigma
     # the true drift the harness logged is the one it measured the estimates against
