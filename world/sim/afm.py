@@ -40,7 +40,7 @@ import numpy as np
 
 from nanoasm.bodies import Body
 from nanoasm.errors import InstrumentLimitError
-from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock, check_samples, ramp
+from nanoasm.instrument import HeightImage, Region, SignalBlock, ramp
 from nanoasm.world.params import WorldParams
 from nanoasm.world.render import make_surface, render_line, render_scan, surface_near
 from nanoasm.world.scene import Scene
@@ -53,6 +53,7 @@ from .calibration import (
 )
 from .clock import InstrumentClock
 from .drift_model import DriftModel
+from .instrument_base import SimulatedInstrument
 from .objects import build_objects
 from .push import PushPhysics
 from .signals import SignalModel
@@ -79,7 +80,7 @@ class PlacedDrift:
         return self.drift.record_move(t, dx, dy)
 
 
-class SimulatedAFM:
+class SimulatedAFM(SimulatedInstrument):
     """A simulated AFM over ``scene`` (see the module docstring for frames, contact, time).
 
     Parameters
@@ -139,38 +140,10 @@ class SimulatedAFM:
         a, b = self._model.baselines(np.array([rest[0]]), np.array([rest[2]]))
         self._signals = (float(a[0]), float(b[0]))
 
-    # -- the Instrument protocol ---------------------------------------------------------------
-    @property
-    def config(self) -> InstrumentConfig:
-        return self.params.scanner
-
-    def clock(self) -> float:
-        """Instrument time in seconds (starts at ``start_time``; advances only by what the
-        instrument does)."""
-        return self._clock.now
-
-    def ledger(self) -> dict[str, float]:
-        """Instrument seconds per activity and their total (the report's ``instrument_time``)."""
-        return self._clock.ledger()
-
-    def signals(self) -> tuple[float, float]:
-        """``(S_n, S_l)`` in volts at the last sample (raw: baselines, cross-talk, noise)."""
-        return self._signals
-
-    def position(self) -> np.ndarray:
-        """The DAC's present XYZ codes: the last sample written; after a scan line its end,
-        lifted; after a full scan or a calibration, the XY before it with Z raised to at
-        least ``lift``."""
-        return self._last.copy()
-
-    def write(self, chunk: np.ndarray) -> SignalBlock:
-        """Play ``(n, 3)`` XYZ codes at ``sample_rate`` after :func:`check_samples` (a refused
-        chunk changes nothing). Sample ``k`` plays at ``clock() + (k + 1) / sample_rate``
-        (after a 2 s mode switch if it is the first contact after a scan)."""
-        codes = check_samples(chunk, self.config, previous=self._last)
-        return self._play(codes)
-
+    # -- the Instrument protocol (config, clock, ledger, signals, position, write: the base's) -----
     def _play(self, codes: np.ndarray, activity: str | None = None) -> SignalBlock:
+        """Play checked codes: sample ``k`` plays at ``clock() + (k + 1) / sample_rate`` (after
+        a 2 s mode switch if it is the first contact after a scan)."""
         cfg = self.config
         nm = cfg.codes_to_nm(codes)
         nm[:, :2] = self._smooth(nm[:, :2])

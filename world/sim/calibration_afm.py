@@ -34,13 +34,14 @@ import math
 import numpy as np
 
 from nanoasm.errors import InstrumentLimitError
-from nanoasm.instrument import HeightImage, InstrumentConfig, Region, SignalBlock, check_samples, ramp
+from nanoasm.instrument import HeightImage, Region, SignalBlock, ramp
 from nanoasm.world.cantilever import to_afm
 from nanoasm.world.params import WorldParams
 
 from .calibration import slope_friction
 from .clock import InstrumentClock
 from .drift_model import DriftModel
+from .instrument_base import SimulatedInstrument
 from .signals import SignalModel
 from .stream import TipState, _motion
 
@@ -50,7 +51,7 @@ RAMP_HALF_WIDTH, RAMP_LENGTH, RAMP_PLATEAU = 300.0, 600.0, 200.0
 STEP_A, STEP_WIDTH, STEP_HALF_LENGTH = 1000.0, 1000.0, 500.0
 
 
-class CalibrationAFM:
+class CalibrationAFM(SimulatedInstrument):
     """A simulated instrument over a calibration specimen (see the module docstring).
 
     Parameters
@@ -129,28 +130,7 @@ class CalibrationAFM:
         on = (np.abs(a) <= RAMP_HALF_WIDTH) & (b >= 0.0) & (b <= self.ramp_length)
         return np.where(on, self.tan * (motion @ self.v), 0.0)
 
-    # -- the Instrument protocol -------------------------------------------------------------
-    @property
-    def config(self) -> InstrumentConfig:
-        return self.params.scanner
-
-    def clock(self) -> float:
-        return self._clock.now
-
-    def ledger(self) -> dict[str, float]:
-        return self._clock.ledger()
-
-    def signals(self) -> tuple[float, float]:
-        return self._signals
-
-    def position(self) -> np.ndarray:
-        return self._last.copy()
-
-    def write(self, chunk: np.ndarray) -> SignalBlock:
-        """Play ``(n, 3)`` XYZ codes after :func:`check_samples`; S_n, S_l per sample."""
-        codes = check_samples(chunk, self.config, previous=self._last)
-        return self._play(codes)
-
+    # -- the Instrument protocol (config, clock, ledger, signals, position, write: the base's) -----
     def _play(self, codes: np.ndarray) -> SignalBlock:
         cfg, model, k = self.config, self._model, self._model.lever.spring_constant
         nm = cfg.codes_to_nm(codes)
