@@ -32,7 +32,7 @@ from nanoasm.world.environment import Environment
 from nanoasm.world.identify import identify
 
 from . import course as courses
-from .baselines import BaselineMaps, lever_line
+from .baselines import BaselineMaps
 from .belief import Belief
 from .context import RunContext
 from .course import Course
@@ -43,6 +43,7 @@ from .estimators import estimator_for
 from .motion_steps import travel_to
 from .pushing import push
 from .landmarks import Landmarks, moved_area
+from .lever_file import lever_line
 from .references import References
 from .reviewed_plan import ReviewedPlan, first_plan
 from .scan_area import ScanArea

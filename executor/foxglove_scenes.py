@@ -128,11 +128,10 @@ def layout_scene(layout, registration: dict | None = None):
     from foxglove.messages import Color, LinePrimitive, LinePrimitiveLineType, SceneUpdate, TextPrimitive
 
     if registration is not None and layout.registration is None:
-        from nanoasm.cad.frame import Similarity
+        from nanoasm.cad.frame import similarity_from_table
+        from nanoasm.schema import Table
 
-        tf = Similarity(float(registration["rotation"]), tuple(float(v) for v in registration["translation"]),
-                        float(registration["scale"]))
-        layout = layout.mapped(tf, layout.area)
+        layout = layout.mapped(similarity_from_table(Table(registration, "plan")), layout.area)
 
     def loop(pts, colour):
         return LinePrimitive(type=LinePrimitiveLineType.LineLoop, pose=_pose(0.0, 0.0, 0.0), thickness=2.0,

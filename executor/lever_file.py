@@ -203,5 +203,15 @@ def calibration_toml(cal: Calibration, what: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["LEVER_KEYS", "LEVER_REQUIRED", "InstrumentLever", "calibration_toml", "lever_from_tables",
+def lever_line(lever: Cantilever, maps: BaselineMaps | None) -> str:
+    """The run's line on the lever it compensates with (a
+    :class:`~nanoasm.world.cantilever.Cantilever`) and its baselines (``maps``, or None:
+    measured in free air before each push)."""
+    base = (f"{maps.pixels} x {maps.pixels} baseline maps" if maps is not None
+            else "baselines measured in free air before each push")
+    return (f"lever: K_n {lever.normal_gain:.4g} nm/V, C1 {lever.c1:.3g} nm/V, C2 {lever.c2:.4g} nm/V, k_l K_l / h "
+            f"{lever.lateral_gain:.4g} nN/V, alpha {lever.crosstalk:.3g}; {base}")
+
+
+__all__ = ["LEVER_KEYS", "LEVER_REQUIRED", "InstrumentLever", "calibration_toml", "lever_from_tables", "lever_line",
            "sites_from_table"]

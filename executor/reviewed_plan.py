@@ -36,7 +36,7 @@ from nanoasm.errors import InputError
 from nanoasm.planner import Plan, PlanOptions
 from nanoasm.planner.assign import axis_error
 from nanoasm.planner.plan import Expect, Operation, load_plan
-from nanoasm.planner.rods import simulate_push
+from nanoasm.planner.rods import push_primitive, simulate_push
 from nanoasm.world.environment import Environment, EnvObject
 
 #: The limit on how far an object may have moved since the plan: the layout's
@@ -92,12 +92,12 @@ def offset(p: Planned, o: EnvObject, options: PlanOptions) -> float:
     counted at the rod's ends."""
     if p.kind != "rod" or p.first is None:
         return math.dist(p.at, o.at)
-    op, tip = p.first, options.tip_radius
-    c, s = math.cos(math.radians(o.angle)), math.sin(math.radians(o.angle))
-    dx, dy = p.at[0] - o.at[0], p.at[1] - o.at[1]
-    along, across = abs(dx * c + dy * s), abs(-dx * s + dy * c)
-    contact = math.hypot(along - o.length * (0.5 - options.rod_push_point), across - (1.25 * o.radius + tip))
-    after = simulate_push(o, op.tip_path[0], op.tip_path[-1], tip)
+    op = p.first
+    # the nearest of the primitive's four starts (either end, either side; the swing moves
+    # only where it ends)
+    contact = min(math.dist(p.at, push_primitive(o, end, side, 0.0, options)[0])
+                  for end in (-1, 1) for side in (-1, 1))
+    after = simulate_push(o, op.tip_path[0], op.tip_path[-1], options.tip_radius)
     turn = math.radians(axis_error(after.angle, op.expect.angle)) * o.length / 2
     return max(contact, math.dist(after.at, op.expect.at) + turn)
 

@@ -54,7 +54,7 @@ def _axes(area, image=None):
     w, h = area
     ax.set_facecolor(BACKGROUND)
     if image is not None:
-        z, side, sigma = _levelled(image)
+        z, side, sigma = levelled(image)
         lo, hi = np.nanpercentile(z, [0.5, 99.8]) if np.isfinite(z).any() else (0.0, 1.0)
         lo = min(lo, 0.0)                   # the substrate dark, what rises 10 sigma above it clear
         shown = ax.imshow(z, origin="lower", extent=(0.0, z.shape[1] * side, 0.0, z.shape[0] * side),
@@ -70,15 +70,25 @@ def _axes(area, image=None):
     return fig, ax
 
 
-def _levelled(image) -> tuple[np.ndarray, float, float]:
+def outline(ax, b, **style) -> None:
+    """Body ``b`` (a particle, rod, slot or any :class:`~nanoasm.bodies.Body`) as its
+    outline, a matplotlib patch (unfilled unless ``fc`` is given)."""
+    from matplotlib.patches import Polygon
+
+    ring = b.geometry().buffer(b.radius, quad_segs=8).exterior.coords
+    style.setdefault("fc", "none")
+    ax.add_patch(Polygon(list(ring), closed=True, **style))
+
+
+def levelled(image, shown: int = SHOWN_PIXELS) -> tuple[np.ndarray, float, float]:
     """The scan levelled as identify levels it (NaN where it has no height), at most
-    :data:`SHOWN_PIXELS` a side (the highest of each block); the side of a pixel shown and
+    ``shown`` pixels a side (the highest of each block); the side of a pixel shown and
     the substrate's noise (sigma), nm."""
     from nanoasm.world.identify import level
 
     lev = level(image.height)
     z = np.where(lev.valid, lev.height, np.nan)
-    step = math.ceil(max(z.shape) / SHOWN_PIXELS)
+    step = math.ceil(max(z.shape) / shown)
     if step > 1:
         ny, nx = -(-z.shape[0] // step), -(-z.shape[1] // step)
         blocks = np.full((ny * step, nx * step), np.nan)
@@ -92,14 +102,13 @@ def _environment(ax, env) -> list:
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch, Polygon
 
-    from nanoasm.review import _outline
 
     for k, ob in enumerate(env.obstacles, start=1):
         ax.add_patch(Polygon(ob.polygon, closed=True, fc="none", ec=OBSTACLE, hatch="//", lw=1.0,
                              ls="--" if ob.edge else "-", gid=f"obstacle-{k}"))
     for o in env.objects:
         colour = COLOURS[o.kind]
-        _outline(ax, o, ec=colour, lw=1.2, ls="--" if o.edge else "-", gid=f"object-{o.id}", zorder=3)
+        outline(ax, o, ec=colour, lw=1.2, ls="--" if o.edge else "-", gid=f"object-{o.id}", zorder=3)
         ax.annotate(o.id + EDGE * o.edge, o.bounds()[2:], xytext=(1, 1), textcoords="offset points",
                     color=colour, fontsize=7, zorder=4)
     kinds = Counter(o.kind for o in env.objects)
@@ -139,7 +148,6 @@ def plan_figure(layout, env, plan, image=None):
     from matplotlib.lines import Line2D
     from matplotlib.patches import Patch, Polygon
 
-    from nanoasm.review import _outline
 
     fig, ax = _axes(env.area, image)
     handles = _environment(ax, env)
@@ -149,7 +157,7 @@ def plan_figure(layout, env, plan, image=None):
     unfilled = {u.target for u in plan.unfilled}
     for t in layout.targets:
         colour = UNFILLED if t.id in unfilled else SLOT
-        _outline(ax, t, ec=colour, lw=1.4, ls="-." if t.id in unfilled else "-", gid=f"slot-{t.id}", zorder=3)
+        outline(ax, t, ec=colour, lw=1.4, ls="-." if t.id in unfilled else "-", gid=f"slot-{t.id}", zorder=3)
         ax.annotate(t.id, t.at, xytext=(-4, -4), textcoords="offset points", ha="right", va="top",
                     color=colour, fontsize=7, fontweight="bold", zorder=4)
     objects = {o.id: o for o in env.objects}

@@ -20,7 +20,7 @@ from __future__ import annotations
 import logging
 import sys
 from collections.abc import Callable, Iterator
-from contextlib import AbstractContextManager, contextmanager
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from datetime import datetime
 
 from nanoasm.errors import InputError
@@ -207,7 +207,7 @@ def _run_progress(label: str, level: int, lines: bool) -> Iterator[list]:
             console.print(f"nanoasm: {as_dict(doc)['text']}", markup=False, highlight=False, soft_wrap=True)
 
     bar = console.is_terminal and not (lines and sys.stdout.isatty())     # never two on one terminal
-    with (log_lines(level) if lines else _nothing()) as logger, (progress_bar(console) if bar else _nothing()) as shown:
+    with (log_lines(level) if lines else nullcontext()) as logger, (progress_bar(console) if bar else nullcontext()) as shown:
         task = None if shown is None else shown.add_task(state.description(), total=None)
 
         def follow(topic: str, doc) -> None:
@@ -221,7 +221,3 @@ def _run_progress(label: str, level: int, lines: bool) -> Iterator[list]:
 
         yield [follow, registered]
 
-
-@contextmanager
-def _nothing() -> Iterator[None]:
-    yield None

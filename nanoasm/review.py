@@ -361,11 +361,3 @@ def plot_review(rev: Review, out: str | os.PathLike) -> None:
     from nanoasm.review_plot import review_figure
 
     write_figure(review_figure(rev), out)
-
-
-def _outline(ax, b: Body, **style) -> None:
-    from matplotlib.patches import Polygon
-
-    ring = b.geometry().buffer(b.radius, quad_segs=8).exterior.coords
-    style.setdefault("fc", "none")
-    ax.add_patch(Polygon(list(ring), closed=True, **style))

@@ -30,6 +30,8 @@ import os
 import numpy as np
 
 from nanoasm.executor.documents import FAILED_VERDICTS
+from nanoasm.planner.assign import axis_error
+from nanoasm.previews import levelled, outline
 
 #: How many slots the zoomed panels show at most (those with the largest errors).
 ZOOMED = 6
@@ -68,7 +70,6 @@ def _scene(ax, rev, bodies, truth, title: str, *, panel: str, scan_alpha: float)
     its parts' SVG ids prefixed with its name."""
     from matplotlib.patches import Polygon
 
-    from nanoasm.review import _outline
 
     if rev.scan is not None:
         _ground(ax, rev.scan, scan_alpha, f"{panel}-full-scan")
@@ -78,15 +79,15 @@ def _scene(ax, rev, bodies, truth, title: str, *, panel: str, scan_alpha: float)
         for k in rev.layout.regions:
             ax.add_patch(Polygon(k.polygon, closed=True, fc=(1, 0.3, 0.3, 0.15), ec="tab:red", lw=0.8))
         for tg in rev.layout.targets:
-            _outline(ax, tg, ec=SLOT, ls="-", lw=1.2, gid=f"{panel}-slot-{tg.id}")
+            outline(ax, tg, ec=SLOT, ls="-", lw=1.2, gid=f"{panel}-slot-{tg.id}")
             _label(ax, tg, tg.id, SLOT, "lower left", f"{panel}-slot-label-{tg.id}", fontweight="bold")
     for b in truth:
-        _outline(ax, b, ec=TRUTH, ls=":", lw=1.0, gid=f"{panel}-truth-{b.id}", zorder=2)
+        outline(ax, b, ec=TRUTH, ls=":", lw=1.0, gid=f"{panel}-truth-{b.id}", zorder=2)
         if panel != "slots":
             _label(ax, b, f"truth: scene id {b.id}", TRUTH, "lower right", f"{panel}-truth-label-{b.id}",
                    fontsize=5)
     for b in bodies:
-        _outline(ax, b, ec=OBJECT, ls="-", lw=0.8, fc=OBJECT_FILL, gid=f"{panel}-object-{b.id}")
+        outline(ax, b, ec=OBJECT, ls="-", lw=0.8, fc=OBJECT_FILL, gid=f"{panel}-object-{b.id}")
         _label(ax, b, b.id, OBJECT, "upper right", f"{panel}-object-label-{b.id}")
     if panel != "before":
         for pts, verdict in rev.paths:
@@ -116,16 +117,11 @@ def _slots_region(ax, rev, title: str) -> None:
 
 
 def _ground(ax, image, alpha: float, gid: str) -> None:
-    """The full scan, levelled, in grey under everything (thinned to :data:`SHOWN_PIXELS`)."""
-    from nanoasm.world.identify import level
-
-    step = max(1, math.ceil(max(image.height.shape) / SHOWN_PIXELS))
-    flat = level(image.height[::step, ::step])
-    z = np.where(flat.valid, flat.height, np.nan)
+    """The full scan, levelled, in grey under everything (at most :data:`SHOWN_PIXELS` a side)."""
+    z, px, _ = levelled(image, SHOWN_PIXELS)
     lo, hi = np.nanpercentile(z, [1.0, 99.5]) if np.isfinite(z).any() else (0.0, 1.0)
-    ny, nx = image.height.shape
+    ny, nx = z.shape
     x0, y0 = image.origin
-    px = image.pixel_size
     ax.imshow(z, origin="lower", extent=(x0, x0 + nx * px, y0, y0 + ny * px), cmap="Greys", alpha=alpha,
               vmin=lo, vmax=max(hi, lo + 1e-6), interpolation="nearest", zorder=0, gid=gid)
 
@@ -169,7 +165,6 @@ def _zoom(ax, rev, row) -> None:
     """One slot at true scale, its error vector and tolerance circle magnified."""
     from matplotlib.patches import Circle
 
-    from nanoasm.review import _outline
 
     tg, pose = rev.layout.target(row.target), row.pose
     tol = rev.layout.tolerance.position
@@ -177,11 +172,11 @@ def _zoom(ax, rev, row) -> None:
     half = max(0.75 * max(x1 - x0, y1 - y0) + 2.0 * tol, row.error + pose.radius + tol)
     gain = _gain(0.8 * half / max(row.error, tol))
     believed = {b.id: b for b in rev.final}.get(row.object) if row.truth is not None else None
-    _outline(ax, tg, ec=SLOT, lw=1.2)
-    _outline(ax, pose, ec=TRUTH if row.truth is not None else OBJECT, lw=1.0, fc=(1.0, 0.8, 0.2, 0.35))
+    outline(ax, tg, ec=SLOT, lw=1.2)
+    outline(ax, pose, ec=TRUTH if row.truth is not None else OBJECT, lw=1.0, fc=(1.0, 0.8, 0.2, 0.35))
     ax.add_patch(Circle(tg.at, gain * tol, fc="none", ec=SLOT, ls="--", lw=0.8))
     if believed is not None:
-        _outline(ax, believed, ec=OBJECT, ls="--", lw=0.8)
+        outline(ax, believed, ec=OBJECT, ls="--", lw=0.8)
         _vector(ax, tg.at, believed.at, gain, "0.4", f"belief-error-{tg.id}")
     _vector(ax, tg.at, pose.at, gain, ERROR, f"error-{tg.id}")
     ax.set_xlim(tg.at[0] - half, tg.at[0] + half)
@@ -189,7 +184,7 @@ def _zoom(ax, rev, row) -> None:
     ax.set_aspect("equal")
     ax.tick_params(labelsize=6)
     ax.set_gid(f"zoom-{tg.id}")
-    turn = f", {_angle_error(tg, pose):.1f}°" if tg.kind == "rod" and pose.kind == "rod" else ""
+    turn = f", {axis_error(pose.angle, tg.angle):.1f}°" if tg.kind == "rod" and pose.kind == "rod" else ""
     ax.set_title(f"slot {tg.id}: {row.error:.1f} nm{turn} off\n{'filled' if row.filled else 'missed'} by "
                  f"{row.object}; vectors x{gain:g}", fontsize=8)
     if row.truth is not None:
@@ -211,12 +206,6 @@ def _vector(ax, start, end, gain: float, colour, gid: str) -> None:
     tip = (start[0] + gain * (end[0] - start[0]), start[1] + gain * (end[1] - start[1]))
     ax.add_patch(FancyArrowPatch(start, tip, arrowstyle="-|>", mutation_scale=10, color=colour, lw=1.2,
                                  shrinkA=0, shrinkB=0, zorder=5, gid=gid))
-
-
-def _angle_error(target, body) -> float:
-    """The angle between a rod's axis and its slot's, degrees (0 to 90)."""
-    d = abs(body.angle - target.angle) % 180.0
-    return min(d, 180.0 - d)
 
 
 # -- drift -------------------------------------------------------------------------------
