@@ -45,6 +45,7 @@ from .pushing import push
 from .landmarks import Landmarks, moved_area
 from .lever_file import lever_line
 from .references import References
+from .repair import repair_round
 from .reviewed_plan import ReviewedPlan, first_plan
 from .scan_area import ScanArea
 from .checkpoints import checkpoint, restore
@@ -85,21 +86,8 @@ class Assembly:
         self.slots: tuple = ()                   # the verdict of the final check scans
 
     def environment(self) -> Environment:
-        """The belief as the planner's environment: objects seen only in the first full
-        scan moved by their row's drift, lost ones left out (where they were believed to
-        be is where the scans did not find them). Objects given up on
-        (:attr:`ExecOptions.max_failures`) are never assigned: they stay, obstacles."""
-        ctx = self.ctx
-        objs = []
-        for o in ctx.belief.objects.values():
-            if o.id in ctx.belief.lost:
-                continue
-            if o.id in ctx.refs.raw:
-                o = replace(o, at=tuple(float(v) for v in ctx.position(o.id)))
-            if o.id in ctx.ledger.given_up:
-                o = replace(o, confidence=0.0)
-            objs.append(o)
-        return Environment(ctx.belief.area, tuple(objs), ctx.belief.obstacles, "belief")
+        """The belief as the planner's environment (:meth:`.RunContext.environment`)."""
+        return self.ctx.environment()
 
     # -- the run --------------------------------------------------------------------
     def procedure(self, config) -> Procedure:
@@ -214,8 +202,28 @@ class Assembly:
         return (yield from self._execute(ops, 0, done, corrections))
 
     def _execute(self, ops: list[Operation], i: int, done: int, corrections: dict[str, int]) -> Procedure:
+        """The pushes of ``ops`` from ``i`` on, then the check scans of every slot; while
+        slots are not filled and repair rounds remain, a survey of them and the pushes
+        planned from it (:mod:`.repair`), checked again."""
+        while True:
+            done = yield from self._pushes(ops, i, done, corrections)
+            # the verdict: what a scan finds in every slot, not what the belief expects
+            self.slots = yield from check_slots(self.ctx, self.layout, summary(self).assignment)
+            counts = {s: sum(v.state == s for v in self.slots) for s in STATES}
+            yield Msg("event", (f"check scans of the {len(self.slots)} slot(s): " +
+                                ", ".join(f"{n} {s}" for s, n in counts.items()),))
+            ops, i, done = (yield from repair_round(self, done)), 0, 0
+            if not ops:
+                break
+        t_now = yield Msg("clock")                     # the belief as the check scans left it
+        yield Msg("checkpoint", (checkpoint(self, [], done, corrections, t_now),))
+        result = summary(self)
+        yield Msg("emit", ("result", result.to_doc()))
+        return result
+
+    def _pushes(self, ops: list[Operation], i: int, done: int, corrections: dict[str, int]):
         """The pushes of ``ops`` from ``i`` on, with scans, corrections and replanning;
-        a checkpoint after each."""
+        a checkpoint after each. Returns how many of the current plan's ran."""
         ctx, opts, ledger = self.ctx, self.options, self.ctx.ledger
         mark = (time.perf_counter(), ledger.wall["plan"])
         while i < len(ops):
@@ -248,7 +256,10 @@ class Assembly:
                     self.plan_options.tip_radius)
                 moved, ctx.corrected = ctx.corrected, False     # by a relocalisation
                 if lost or (self.strategy.replans and (outcome == "failed" or off > limit or astray or moved)):
-                    ops, i, done = (yield from self._replan(op, outcome, done, off, astray, moved)), 0, 0
+                    why = ("lost" if lost else f"{off:.0f} nm off course"
+                           + (", its course now too close to a neighbour" if astray else "")
+                           + (", objects moved by a relocalisation" if moved else ""))
+                    ops, i, done = (yield from self.replan(done, f"{op.object} {outcome} ({why})")), 0, 0
                 elif op.target is not None and all(p.object != op.object for p in ops[i:]):
                     extra = courses.correction(self.layout, ctx.belief, op, corrections, opts.max_corrections,
                                                self.plan_options, max(p.id for p in ops) + 1)
@@ -261,16 +272,7 @@ class Assembly:
             t_now = yield Msg("clock")
             yield Msg("checkpoint", (checkpoint(self, ops[i:], done, corrections, t_now),))
         self._count_execute(mark)
-        # the verdict: what a scan finds in every slot, not what the belief expects
-        self.slots = yield from check_slots(ctx, self.layout, summary(self).assignment)
-        counts = {s: sum(v.state == s for v in self.slots) for s in STATES}
-        yield Msg("event", (f"check scans of the {len(self.slots)} slot(s): " +
-                            ", ".join(f"{n} {s}" for s, n in counts.items()),))
-        t_now = yield Msg("clock")                     # the belief as the check scans left it
-        yield Msg("checkpoint", (checkpoint(self, [], done, corrections, t_now),))
-        result = summary(self)
-        yield Msg("emit", ("result", result.to_doc()))
-        return result
+        return done
 
     def _count_execute(self, mark: tuple[float, float]) -> tuple[float, float]:
         """Add the wall time since ``mark`` (``perf_counter()`` and the plan stage's seconds
@@ -281,8 +283,9 @@ class Assembly:
         wall["execute"] += now - mark[0] - (wall["plan"] - mark[1])
         return now, wall["plan"]
 
-    def _replan(self, op: Operation, outcome: str, done: int, off: float, astray: bool, moved: bool = False):
-        """Plan what remains from the present belief after ``op``; returns its operations."""
+    def replan(self, done: int, after: str):
+        """Plan what remains from the present belief (``after``: what made it needed, for
+        the event); returns its operations."""
         ctx = self.ctx
         w0 = time.perf_counter()
         now = self.environment()
@@ -292,9 +295,6 @@ class Assembly:
         ops = list(rest.plan.operations)
         self.course.follow(now, ops)
         ctx.moving = {p.object for p in ops}
-        why = ("lost" if outcome == "lost" else f"{off:.0f} nm off course"
-               + (", its course now too close to a neighbour" if astray else "")
-               + (", objects moved by a relocalisation" if moved else ""))
-        yield Msg("event", (f"replanned after {op.object} {outcome} ({why}): {len(ops)} push(es) remain",))
+        yield Msg("event", (f"replanned after {after}: {len(ops)} push(es) remain",))
         yield Msg("emit", ("plan", rest.plan.to_dict()))
         return ops

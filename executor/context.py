@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from nanoasm.bodies import Body
+from nanoasm.world.environment import Environment
 
 from .belief import Belief
 from .estimators import DriftEstimator
@@ -44,7 +45,9 @@ class RunContext:
     objects since the plan was last made (the plan is made again after the push).
     ``pivots``: every pushed rod's pose-and-pivot-offset filter. ``baselines``: the
     calibration's free-air maps A(i, j), B(i, j) the push monitor compensates with (not in
-    checkpoints: the instrument's, given again on resuming)."""
+    checkpoints: the instrument's, given again on resuming). ``surveyed``: windows (layout
+    frame) a repair round scanned for lost objects, not searched again (:mod:`.repair`;
+    not in checkpoints: a resumed run may search them again)."""
 
     config: Any                         # the instrument's InstrumentConfig
     options: ExecOptions
@@ -65,6 +68,7 @@ class RunContext:
     corrected: bool = False
     pivots: Pivots = field(default_factory=Pivots)
     baselines: Any = None               # the detector's BaselineMaps (eq. 3.28-3.29); None: free air
+    surveyed: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
         if self.scan_opts is None:
@@ -104,3 +108,19 @@ class RunContext:
     def log_drift(self, t: float) -> None:
         off = self.offset(t)
         self.ledger.drift.append((t, float(off[0]), float(off[1])))
+
+    def environment(self) -> Environment:
+        """The belief as the planner's environment: objects seen only in the first full
+        scan moved by their row's drift, lost ones left out (where they were believed to
+        be is where the scans did not find them). Objects given up on
+        (:attr:`ExecOptions.max_failures`) are never assigned: they stay, obstacles."""
+        objs = []
+        for o in self.belief.objects.values():
+            if o.id in self.belief.lost:
+                continue
+            if o.id in self.refs.raw:
+                o = replace(o, at=tuple(float(v) for v in self.position(o.id)))
+            if o.id in self.ledger.given_up:
+                o = replace(o, confidence=0.0)
+            objs.append(o)
+        return Environment(self.belief.area, tuple(objs), self.belief.obstacles, "belief")

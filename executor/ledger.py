@@ -39,6 +39,7 @@ class RunLedger:
     given_up: set[str] = field(default_factory=set)
     pushed: list[str] = field(default_factory=list)
     drift: list[tuple[float, float, float]] = field(default_factory=list)
+    repairs: int = 0                    # repair rounds made (:mod:`.repair`)
 
     def fail(self, obj_id: str, cause: str) -> None:
         """An object's push or scan went wrong (``cause``: lost, slipped, ...)."""
@@ -65,7 +66,7 @@ class RunLedger:
                 "purposes": dict(self.purposes),
                 "failures": [list(f) for f in self.failures], "troubles": dict(self.troubles),
                 "given_up": sorted(self.given_up), "pushed": list(self.pushed),
-                "drift_log": [list(d) for d in self.drift]}
+                "drift_log": [list(d) for d in self.drift], "repairs": self.repairs}
 
     @classmethod
     def from_state(cls, state: dict) -> RunLedger:
@@ -78,5 +79,6 @@ class RunLedger:
         out.troubles = {k: int(v) for k, v in state["troubles"].items()}
         out.given_up = set(state["given_up"])
         out.pushed = list(state["pushed"])
+        out.repairs = int(state.get("repairs", 0))
         out.drift = [tuple(d) for d in state["drift_log"]]
         return out

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 PROGRESS = "progress"
 #: The phases of a run, in order (a resumed run goes straight to execute); ``drift`` only
 #: where the estimator measures the drift before planning.
-PHASES = ("full scan", "identify", "drift", "plan", "execute")
+PHASES = ("full scan", "identify", "drift", "plan", "execute", "repair")
 
 
 @dataclass(frozen=True)

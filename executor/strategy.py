@@ -109,6 +109,9 @@ class ExecOptions:
         Pushes of one object that fail or leave it off course (``replan_after``) after
         which it is left where it is: it becomes an obstacle to the planner and its slot
         goes to another object.
+    repair_rounds : int
+        With replanning (``full``): rounds of survey and pushes after the check scans
+        while slots are not filled (:mod:`.repair`); 0: none.
     replan_after : float
         With replanning (``full``): an object this far off its planned course after a
         push (nm), or a failed push, has the rest planned again; smaller deviations are
@@ -163,6 +166,8 @@ class ExecOptions:
     max_corrections: int = param(2, "-", "extra pushes to bring an object into its slot", nonnegative=True)
     max_failures: int = param(3, "-", "failed or off-course pushes of one object before it is left",
                               lo=1)
+    repair_rounds: int = param(2, "-", "survey-and-push rounds after the check scans while slots are "
+                               "not filled", nonnegative=True)
     replan_after: float = param(60.0, "nm", "deviation from the planned course that replans (full)",
                                 positive=True)
     lost_radius: float = param(1500.0, "nm", "half-size of the search for a lost object", positive=True)

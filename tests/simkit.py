@@ -61,3 +61,14 @@ def push(sim: SimulatedAFM, start, end, *, compensate: bool = True, lift: float 
     codes = path_codes(sim, [(x0, y0, lift), (x0, y0, -cfg.preload), (x1, y1, -cfg.preload),
                              (x1, y1, lift)], push_speed)
     return sim.write(codes), codes
+
+
+class Events:
+    """A dry-run subscriber keeping the texts of its events."""
+
+    def __init__(self):
+        self.texts: list[str] = []
+
+    def __call__(self, topic, doc):
+        if topic == "event":
+            self.texts.append(doc.text if hasattr(doc, "text") else doc["text"])

@@ -15,17 +15,10 @@ from nanoasm.dryrun import dry_run
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.world.families import family_case
 
+from simkit import Events
+
 #: 2-dof χ² of probability 0.9973: an error within "3σ" of a 2-D estimate.
 CHI2_3SIGMA = 11.829
-
-
-class Events:
-    def __init__(self):
-        self.texts: list[str] = []
-
-    def __call__(self, topic, doc):
-        if topic == "event":
-            self.texts.append(doc.text if hasattr(doc, "text") else doc["text"])
 
 
 def _with_jump(scene, size: float, at: float):
