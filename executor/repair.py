@@ -15,8 +15,9 @@ total distance (:func:`scipy.optimize.linear_sum_assignment`):
 - a believed object (lost ones included) matched to a sighting is observed there and
   found again; one that moved beyond its uncertainty is no drift reference any more;
 - a believed particle (not lost) well inside the window (:data:`SEEN_MARGIN`) that no
-  sighting matches is lost, unless it lies in a clump the identification could not
-  resolve (touching objects); a rod is not (a small window's identification may take
+  sighting matches is looked for with a local scan where it is believed (particles
+  packed closer than the tip can resolve read as one clump in a survey), and lost if
+  that does not find it either; unless it lies in such a clump; a rod is not (a small window's identification may take
   a rod beside particles for a clump, or a slender one for a wire);
 - a particle seen where no believed object can be is added (``new<k>``); any other
   unmatched sighting (a rod) is added as an obstacle the planner works around.
@@ -42,6 +43,7 @@ from .drift_steps import take_reference
 from .engine import Msg
 from .progress_docs import PROGRESS, ProgressDoc
 from .relocalise import keep_track
+from .scan_steps import locate
 
 #: Substrate surveyed beyond a slot's footprint, nm: a push gone astray leaves its object
 #: and the neighbours it shoved within a few hundred nm.
@@ -269,7 +271,15 @@ def _survey_window(ctx: RunContext, window, k: int, tip_radius: float, sought: s
              for o in env.objects if not o.edge and o.kind in ("particle", "rod")]
     clumps = [(np.array([layout_frame(p) for p in ob.polygon]), ob.height) for ob in env.obstacles]
     region = (float(x0 - off[0]), float(y0 - off[1]), float(x1 - off[0]), float(y1 - off[1]))
-    lines = _associate(ctx, region, found, clumps, pixel, sought)
+    lines, unseen = _associate(ctx, region, found, clumps, pixel, sought)
+    for oid in unseen:            # a crowded window may hide what a local scan still finds
+        located = yield from locate(ctx, oid, widen=False)
+        if located is None:
+            ctx.belief.lose(oid)
+            lines.append(f"{oid} is not there")
+        else:
+            scanner, cov, t = located[:3]
+            ctx.observe(oid, ctx.to_layout(scanner, t).at, t, cov)
     yield Msg("event", (f"survey {k} of ({region[0]:.0f}, {region[1]:.0f})-({region[2]:.0f}, "
                         f"{region[3]:.0f}), {pixels} x {pixels} px: {len(found)} object(s) seen"
                         + ("; " + "; ".join(lines) if lines else "; the belief holds"),))
@@ -281,9 +291,10 @@ def _inside(o, region, margin: float = 0.0) -> bool:
     return region[0] + r <= o.at[0] <= region[2] - r and region[1] + r <= o.at[1] <= region[3] - r
 
 
-def _associate(ctx: RunContext, region, found, clumps, pixel: float, sought=frozenset()) -> list[str]:
+def _associate(ctx: RunContext, region, found, clumps, pixel: float, sought=frozenset()):
     """Match the survey's sightings (``found``: (object in the layout frame, time)) to
-    the belief (see the module docstring); returns a line per change. ``clumps``:
+    the belief (see the module docstring); returns a line per change and the believed
+    particles the survey should have seen and did not (the caller scans for them). ``clumps``:
     outlines (layout frame) of what the survey could not resolve into objects (particles
     touching), with their heights: a believed object near one at least half its height
     is neither observed nor lost."""
@@ -325,11 +336,8 @@ def _associate(ctx: RunContext, region, found, clumps, pixel: float, sought=froz
                 ctx.refs.gated.add(oid)                 # moved: no drift reference any more
         belief.lost.discard(oid)
         ctx.observe(oid, s.at, t, cov, angle=s.angle if s.elongated else None)
-    for oid in near:
-        o = belief[oid]
-        if oid not in matched_b | belief.lost | hidden and o.kind == "particle" and _inside(o, region, SEEN_MARGIN):
-            belief.lose(oid)
-            out.append(f"{oid} is not there")
+    unseen = [oid for oid in near if oid not in matched_b | belief.lost | hidden
+              and belief[oid].kind == "particle" and _inside(belief[oid], region, SEEN_MARGIN)]
     for j, (s, t) in enumerate(found):
         if j in matched_f or not _inside(s, region):
             continue
@@ -347,4 +355,4 @@ def _associate(ctx: RunContext, region, found, clumps, pixel: float, sought=froz
             ctx.ledger.given_up.add(new)               # of unknown shape: an obstacle, never pushed
         out.append(f"{new} ({s.kind}) seen where nothing was believed"
                    + ("" if s.kind == "particle" else ": an obstacle"))
-    return out
+    return out, unseen

@@ -166,7 +166,7 @@ class ExecOptions:
     max_corrections: int = param(2, "-", "extra pushes to bring an object into its slot", nonnegative=True)
     max_failures: int = param(3, "-", "failed or off-course pushes of one object before it is left",
                               lo=1)
-    repair_rounds: int = param(2, "-", "survey-and-push rounds after the check scans while slots are "
+    repair_rounds: int = param(1, "-", "survey-and-push rounds after the check scans while slots are "
                                "not filled", nonnegative=True)
     replan_after: float = param(60.0, "nm", "deviation from the planned course that replans (full)",
                                 positive=True)

@@ -84,26 +84,26 @@ def _rod(oid, x, y):
 REGION = (1000.0, 1000.0, 2000.0, 2000.0)
 
 
-def test_a_survey_finds_a_lost_object_loses_a_missing_one_and_moves_a_shoved_one():
+def test_a_survey_finds_a_lost_object_doubts_a_missing_one_and_moves_a_shoved_one():
     ctx = FakeCtx([_p("a", 1500, 1500), _p("b", 1300, 1300), _p("c", 1700, 1300), _p("gone", 1200, 1800),
                    _p("edge", 1030, 1500)], lost={"b"})
     found = [(_p("s1", 1502, 1498), 10.0),           # a, where it was believed
              (_p("s2", 1350, 1350), 10.0),           # b, lost, 71 nm from its last belief
              (_p("s3", 1850, 1350), 10.0)]           # c, shoved 158 nm
-    lines = repair._associate(ctx, REGION, found, [], 10.0)
+    lines, unseen = repair._associate(ctx, REGION, found, [], 10.0)
     b = ctx.belief
     assert b["a"].at == (1502, 1498) and "a" not in ctx.refs.gated
     assert "b" not in b.lost and b["b"].at == (1350, 1350)
     assert b["c"].at == (1850, 1350) and "c" in ctx.refs.gated        # moved: no reference now
-    assert "gone" in b.lost                                            # inside, not seen
-    assert "edge" not in b.lost                                        # cut by the window's edge
-    assert any(t.startswith("b found again") for t in lines) and "gone is not there" in lines
+    assert unseen == ["gone"]                 # inside, not seen: a local scan looks for it
+    assert "edge" not in unseen and not b.lost                         # cut by the window's edge
+    assert any(t.startswith("b found again") for t in lines)
 
 
 def test_unknown_sightings_are_added_a_particle_to_use_anything_else_as_an_obstacle():
     ctx = FakeCtx([_p("a", 1500, 1500)])
     found = [(_p("s1", 1500, 1500), 1.0), (_p("s2", 1200, 1200), 1.0), (_rod("s3", 1500, 1700), 1.0)]
-    lines = repair._associate(ctx, REGION, found, [], 10.0)
+    lines, _ = repair._associate(ctx, REGION, found, [], 10.0)
     new = [oid for oid in ctx.belief.objects if oid.startswith("new")]
     assert len(new) == 2 and len(lines) == 2
     kinds = {ctx.belief[oid].kind: oid for oid in new}
@@ -114,13 +114,13 @@ def test_a_believed_object_inside_an_unresolved_clump_is_neither_lost_nor_moved(
     """A clump as high as the objects hides them; a 2 nm one (substrate texture) does not."""
     ctx = FakeCtx([_p("a", 1500, 1500), _p("b", 1585, 1500), _p("c", 1850, 1850)])
     clump = np.array([(1440, 1440), (1650, 1440), (1650, 1560), (1440, 1560)], float)
-    repair._associate(ctx, REGION, [], [(clump, 80.0), (clump + 400.0, 2.0)], 10.0)
-    assert ctx.belief.lost == {"c"} and ctx.belief["a"].at == (1500, 1500)
+    _, unseen = repair._associate(ctx, REGION, [], [(clump, 80.0), (clump + 400.0, 2.0)], 10.0)
+    assert unseen == ["c"] and ctx.belief["a"].at == (1500, 1500)
 
 
 def test_a_sighting_in_a_window_searched_for_a_lost_object_is_that_object_however_far():
     ctx = FakeCtx([_p("a", 3500, 3500)], lost={"a"})                 # believed 2 µm away
-    lines = repair._associate(ctx, REGION, [(_p("s", 1500, 1500), 5.0)], [], 10.0, {"a"})
+    lines, _ = repair._associate(ctx, REGION, [(_p("s", 1500, 1500), 5.0)], [], 10.0, {"a"})
     assert "a" not in ctx.belief.lost and ctx.belief["a"].at == (1500, 1500)
     assert not any(o.startswith("new") for o in ctx.belief.objects), lines
 
