@@ -174,11 +174,14 @@ MAX_WINDOWS = 8
 
 def repair_round(asm, done: int):
     """A repair round of the assembly ``asm`` (after its check scans, ``done`` operations
-    of its plan run) if slots are not filled and rounds remain: survey them, plan again
-    from what the survey saw; returns the new plan's operations (none: the run is over)."""
+    of its plan run) if slots are not filled, rounds remain and the run pushed something
+    (else the belief is what the full scan showed, which a survey at its pixel size would
+    only repeat): survey them, plan again from what the survey saw; returns the new plan's
+    operations (none: the run is over)."""
     ctx = asm.ctx
     bad = len(_particle_slots_not_filled(asm.layout, asm.slots))
-    if not bad or not asm.strategy.replans or ctx.ledger.repairs >= asm.options.repair_rounds:
+    if not bad or not asm.strategy.replans or ctx.ledger.repairs >= asm.options.repair_rounds \
+            or not ctx.ledger.pushed:               # nothing pushed: the belief is the full scan's
         return []
     ctx.ledger.repairs += 1
     if ctx.ledger.repairs == 1:
