@@ -125,6 +125,35 @@ def test_a_sighting_in_a_window_searched_for_a_lost_object_is_that_object_howeve
     assert not any(o.startswith("new") for o in ctx.belief.objects), lines
 
 
+def test_what_a_round_surveys_first_empty_particle_slots_their_objects_and_overlaps():
+    """A particle slot found empty (nothing there, or something outside the tolerance) is
+    surveyed with its assigned object's place; a filled slot, a rod slot, or one whose
+    object was found within the tolerance (of the wrong size or shape) is not; two
+    believed particles on top of each other are."""
+    from nanoasm.cad.layout import Layout, Tolerance
+    from nanoasm.executor.slot_verdict import SlotVerdict
+    from nanoasm.bodies import Body
+
+    ctx = FakeCtx([_p("a", 500, 500), _p("b", 3000, 3000), _p("c", 3020, 3000), _p("d", 1000, 3000)])
+    targets = (Body("s1", "particle", (400.0, 400.0), 80.0), Body("s2", "particle", (2000.0, 2000.0), 80.0),
+               Body("s3", "particle", (1000.0, 3000.0), 80.0), Body("bar", "rod", (3500.0, 500.0), 30.0, 0.0, 400.0))
+    layout = Layout((4000.0, 4000.0), targets, tolerance=Tolerance(position=20.0))
+    verdicts = (SlotVerdict("s1", "a", "missed", 141.0), SlotVerdict("s2", None, "filled", 3.0),
+                SlotVerdict("s3", "d", "missed", 8.0), SlotVerdict("bar", None, "unfilled", None))
+    out = repair.doubtful_windows(ctx, layout, verdicts)
+    centre = lambda w: ((w[0] + w[2]) / 2, (w[1] + w[3]) / 2)  # noqa: E731
+    inside = lambda at: any(w[0] <= at[0] <= w[2] and w[1] <= at[1] <= w[3] for w in out)  # noqa: E731
+    assert inside((400, 400)) and inside((500, 500))            # s1 and its object a
+    assert inside((3010, 3000))                                  # b and c overlap
+    assert not inside((2000, 2000)) and not inside((1000, 3000)) and not inside((3500, 500))
+    assert len(out) == 2, [centre(w) for w in out]
+    # particles left for the empty slots: a, b, c, d (none holds a filled slot)
+    assert repair._spare_particles(ctx, verdicts) == 4
+    ctx.belief.lose("a")
+    ctx.ledger.given_up.add("b")
+    assert repair._spare_particles(ctx, (SlotVerdict("s3", "d", "filled", 8.0),)) == 1
+
+
 def test_a_lost_objects_windows_follow_its_pushes_latest_first_and_skip_what_was_surveyed():
     from nanoasm.executor.references import SweptArea
 
