@@ -85,10 +85,6 @@ class Assembly:
         self.first_plan = None
         self.slots: tuple = ()                   # the verdict of the final check scans
 
-    def environment(self) -> Environment:
-        """The belief as the planner's environment (:meth:`.RunContext.environment`)."""
-        return self.ctx.environment()
-
     # -- the run --------------------------------------------------------------------
     def procedure(self, config) -> Procedure:
         """The whole run as a generator of messages (``config``: the instrument's)."""
@@ -144,7 +140,7 @@ class Assembly:
         ctx.belief.obstacles = unskewed_obstacles(env.obstacles, drift, row_time)
         yield _phase("plan")
         w0 = time.perf_counter()
-        plan, line = first_plan(self.replanner, self.reviewed, self.layout, self.environment(), area.pixel_size)
+        plan, line = first_plan(self.replanner, self.reviewed, self.layout, self.ctx.environment(), area.pixel_size)
         ledger.wall["plan"] += time.perf_counter() - w0
         yield Msg("emit", ("plan", plan.to_dict()))
         yield Msg("event", (line,))
@@ -154,7 +150,7 @@ class Assembly:
         if drift.uses_landmarks:
             ctx.landmarks.choose_windows(image, self.options.relocalise_window,
                                          avoid=moved_area(env, ops, self.layout))
-        self.course.follow(self.environment(), ops)
+        self.course.follow(self.ctx.environment(), ops)
         self.env, self.first_plan = env, plan
         yield _phase("execute")
         ledger.wall["execute"] += time.perf_counter() - t_wall - ledger.wall["identify"] - ledger.wall["plan"]
@@ -252,7 +248,7 @@ class Assembly:
                                     f"to the rest",), {"level": "warn"})
             if self.strategy.scans:
                 astray = o.kind == "rod" and not lost and not courses.course_clear(   # next poses clear?
-                    o, self.course.starts, ops[i:], [b for b in self.environment().objects if b.id != o.id],
+                    o, self.course.starts, ops[i:], [b for b in self.ctx.environment().objects if b.id != o.id],
                     self.plan_options.tip_radius)
                 moved, ctx.corrected = ctx.corrected, False     # by a relocalisation
                 if lost or (self.strategy.replans and (outcome == "failed" or off > limit or astray or moved)):
@@ -267,7 +263,7 @@ class Assembly:
                         ledger.counts["replans"] += 1
                     if extra:
                         ops[i:i] = extra
-                        self.course.follow(self.environment(), extra, extend=True)
+                        self.course.follow(self.ctx.environment(), extra, extend=True)
             mark = self._count_execute(mark)        # the checkpoint holds the compute so far
             t_now = yield Msg("clock")
             yield Msg("checkpoint", (checkpoint(self, ops[i:], done, corrections, t_now),))
@@ -288,7 +284,7 @@ class Assembly:
         the event); returns its operations."""
         ctx = self.ctx
         w0 = time.perf_counter()
-        now = self.environment()
+        now = self.ctx.environment()
         rest = self.replanner.remainder(now, done, force=True, pivot_offsets=ctx.pivots.offsets(now.objects))
         ctx.ledger.wall["plan"] += time.perf_counter() - w0
         ctx.ledger.counts["replans"] += 1

@@ -230,7 +230,7 @@ def _recheck(ctx: RunContext, ambiguous: list[str], shift: np.ndarray):
     for oid in ambiguous:
         o = ctx.belief[oid]
         for at, which in ((np.asarray(o.at, float) - shift, "the correction"), (o.at, "the old estimate")):
-            if _taken(ctx, oid, at) and which == "the correction":
+            if taken(ctx, oid, at) and which == "the correction":
                 continue
             ctx.belief.objects[oid] = replace(o, at=(float(at[0]), float(at[1])))
             found = yield from locate(ctx, oid, widen=which == "the old estimate")
@@ -245,7 +245,7 @@ def _recheck(ctx: RunContext, ambiguous: list[str], shift: np.ndarray):
             ctx.belief.objects[oid] = o
 
 
-def _taken(ctx: RunContext, oid: str, at) -> bool:
+def taken(ctx: RunContext, oid: str, at) -> bool:
     """Whether another believed object (not lost) overlaps ``oid`` placed at ``at`` by
     more than half the smaller's diameter."""
     me = ctx.belief[oid]

@@ -15,10 +15,11 @@ total distance (:func:`scipy.optimize.linear_sum_assignment`):
 - a believed object (lost ones included) matched to a sighting is observed there and
   found again; one that moved beyond its uncertainty is no drift reference any more;
 - a believed particle (not lost) well inside the window (:data:`SEEN_MARGIN`) that no
-  sighting matches is looked for with a local scan where it is believed (particles
-  packed closer than the tip can resolve read as one clump in a survey), and lost if
-  that does not find it either; unless it lies in such a clump; a rod is not (a small window's identification may take
-  a rod beside particles for a clump, or a slender one for a wire);
+  sighting matches stays as it was if it lies in a clump the identification could not
+  resolve (particles packed closer than the tip resolves); otherwise a local scan looks
+  for it where it is believed, and it is lost only if that does not find it either. A
+  rod is never lost by a survey (a small window's identification may take a rod beside
+  particles for a clump, or a slender one for a wire);
 - a particle seen where no believed object can be is added (``new<k>``); any other
   unmatched sighting (a rod) is added as an obstacle the planner works around.
 
@@ -42,7 +43,7 @@ from .context import RunContext
 from .drift_steps import take_reference
 from .engine import Msg
 from .progress_docs import PROGRESS, ProgressDoc
-from .relocalise import keep_track
+from .relocalise import keep_track, taken
 from .scan_steps import locate
 
 #: Substrate surveyed beyond a slot's footprint, nm: a push gone astray leaves its object
@@ -63,13 +64,10 @@ GATE = 400.0
 GATE_LOST = 800.0
 
 
-def _square(x: float, y: float, half: float) -> tuple[float, float, float, float]:
-    return (x - half, y - half, x + half, y + half)
-
-
 def _box(body, margin: float) -> tuple[float, float, float, float]:
     """A body's (a slot's, an object's) footprint plus ``margin`` as a window."""
-    return _square(*body.at, (body.length / 2.0 if body.elongated else 0.0) + body.radius + margin)
+    (x, y), half = body.at, (body.length / 2.0 if body.elongated else 0.0) + body.radius + margin
+    return (x - half, y - half, x + half, y + half)
 
 
 def merge_windows(boxes, largest: float = MAX_SURVEY) -> list[tuple[float, float, float, float]]:
@@ -115,28 +113,25 @@ def tiles(area, margin: float = SURVEY_MARGIN, largest: float = MAX_SURVEY,
     return out
 
 
-def _overlapping(ctx: RunContext) -> set[str]:
+def _overlapping(ctx: RunContext) -> list[str]:
     """Believed particles (not lost) that overlap another by more than half the smaller's
-    diameter: two objects cannot be there; one of them is a mistaken identity."""
-    parts = [(oid, o) for oid, o in ctx.belief.objects.items()
-             if o.kind == "particle" and oid not in ctx.belief.lost]
-    out = set()
-    for k, (a, oa) in enumerate(parts):
-        for b, ob in parts[k + 1:]:
-            if math.dist(oa.at, ob.at) < oa.radius + ob.radius - 0.5 * min(oa.diameter, ob.diameter):
-                out |= {a, b}
-    return out
+    diameter (:func:`~.relocalise.taken`): two objects cannot be there; one of them is a
+    mistaken identity."""
+    b = ctx.belief
+    return sorted(oid for oid, o in b.objects.items()
+                  if o.kind == "particle" and oid not in b.lost and taken(ctx, oid, o.at))
 
 
-def doubtful_windows(ctx: RunContext, layout, verdicts) -> list[tuple[float, float, float, float]]:
-    """Where a repair round looks first: every particle slot not filled, the object
-    assigned to it, and believed particles that overlap another (:data:`SURVEY_MARGIN` around each)."""
+def doubtful_windows(ctx: RunContext, bad) -> list[tuple[float, float, float, float]]:
+    """Where a repair round looks first: every particle slot not filled (``bad``, as
+    :func:`_particle_slots_not_filled` gives them), the object assigned to it, and believed
+    particles that overlap another (:data:`SURVEY_MARGIN` around each)."""
     boxes = []
-    for target, v in _particle_slots_not_filled(layout, verdicts):
+    for target, v in bad:
         boxes.append(_box(target, SURVEY_MARGIN))
         if v.object in ctx.belief.objects and v.object not in ctx.belief.lost:
             boxes.append(_box(ctx.belief[v.object], SURVEY_MARGIN))
-    boxes += [_box(ctx.belief[oid], SURVEY_MARGIN) for oid in sorted(_overlapping(ctx))]
+    boxes += [_box(ctx.belief[oid], SURVEY_MARGIN) for oid in _overlapping(ctx)]
     return merge_windows(boxes)
 
 
@@ -179,16 +174,16 @@ def repair_round(asm, done: int):
     only repeat): survey them, plan again from what the survey saw; returns the new plan's
     operations (none: the run is over)."""
     ctx = asm.ctx
-    bad = len(_particle_slots_not_filled(asm.layout, asm.slots))
+    bad = _particle_slots_not_filled(asm.layout, asm.slots)
     if not bad or not asm.strategy.replans or ctx.ledger.repairs >= asm.options.repair_rounds \
             or not ctx.ledger.pushed:               # nothing pushed: the belief is the full scan's
         return []
     ctx.ledger.repairs += 1
     if ctx.ledger.repairs == 1:
         yield Msg("emit", (PROGRESS, ProgressDoc("phase", "repair")))
-    yield Msg("event", (f"repair round {ctx.ledger.repairs}: surveying the {bad} particle slot(s) not filled",),
-              {"level": "warn"})
-    yield from survey(ctx, asm.layout, asm.slots, asm.plan_options.tip_radius)
+    yield Msg("event", (f"repair round {ctx.ledger.repairs}: surveying the {len(bad)} particle slot(s) "
+                        f"not filled",), {"level": "warn"})
+    yield from survey(ctx, bad, asm.slots, asm.plan_options.tip_radius)
     return (yield from asm.replan(done, f"repair round {ctx.ledger.repairs}"))
 
 
@@ -211,33 +206,29 @@ def _spare_particles(ctx: RunContext, verdicts) -> int:
                and oid not in holding for oid, o in ctx.belief.objects.items())
 
 
-def survey(ctx: RunContext, layout, verdicts, tip_radius: float):
-    """Scan windows around every slot not filled (plan stub; ``verdicts``: the check
-    scans' :class:`~.slot_verdict.SlotVerdict`\\ s in ``layout``'s order) and set the
-    belief from what they show; then, if the particles left are fewer than those slots,
-    windows where particles still lost were pushed.
-    Returns how many believed objects it changed (found, moved, lost or added)."""
-    changed = 0
-    first = doubtful_windows(ctx, layout, verdicts)[:MAX_WINDOWS]
+def survey(ctx: RunContext, bad, verdicts, tip_radius: float):
+    """Scan windows around the particle slots not filled (plan stub; ``bad``: those slots
+    and their verdicts, :func:`_particle_slots_not_filled`; ``verdicts``: every slot's) and
+    set the belief from what they show; then, if the particles left are fewer than those
+    slots, windows where particles still lost were pushed."""
+    first = doubtful_windows(ctx, bad)[:MAX_WINDOWS]
     for k, window in enumerate(first):
-        changed += yield from _survey_window(ctx, window, k + 1, tip_radius)
-    bad = len(_particle_slots_not_filled(layout, verdicts))
-    if _spare_particles(ctx, verdicts) >= bad:
-        return changed                                   # enough to fill them without the lost
+        yield from _survey_window(ctx, window, k + 1, tip_radius)
+    if _spare_particles(ctx, verdicts) >= len(bad):
+        return                                           # enough to fill them without the lost
     todo = lost_windows(ctx, [*first, *ctx.surveyed])[:MAX_WINDOWS - len(first)]
     for k, (window, sought) in enumerate(todo):
         if not sought & ctx.belief.lost:
             continue                                     # found again meanwhile
-        changed += yield from _survey_window(ctx, window, len(first) + k + 1, tip_radius, sought)
+        yield from _survey_window(ctx, window, len(first) + k + 1, tip_radius, sought)
         ctx.surveyed.append(window)                      # not looked at again for the lost
-    return changed
 
 
 def _survey_window(ctx: RunContext, window, k: int, tip_radius: float, sought: set[str] = frozenset()):
     """One survey window (layout frame): scanned where the estimate puts it, a drift
     reference measured before it, identified, associated with the belief (a
     sighting nothing believed matches is taken for the nearest of the lost objects
-    ``sought`` there); returns how many believed objects changed."""
+    ``sought`` there)."""
     pixel = ctx.full_scan.pixel_size if ctx.full_scan is not None else ctx.options.pixel_size
     lo, hi = np.asarray(ctx.config.lower[:2], float), np.asarray(ctx.config.upper[:2], float)
     middle = 0.5 * (np.asarray(window[:2]) + np.asarray(window[2:]))
@@ -246,12 +237,11 @@ def _survey_window(ctx: RunContext, window, k: int, tip_radius: float, sought: s
     t0 = yield Msg("clock")
     off = ctx.offset(t0)
     half = 0.5 * max(window[2] - window[0], window[3] - window[1])     # square: one pixel size
-    centre = 0.5 * (np.asarray(window[:2]) + np.asarray(window[2:])) + off
-    x0, y0 = np.maximum(centre - half, lo)
-    x1, y1 = np.minimum(centre + half, hi)
+    x0, y0 = np.maximum(middle + off - half, lo)
+    x1, y1 = np.minimum(middle + off + half, hi)
     side = min(x1 - x0, y1 - y0)
     if side < 10.0 * pixel:
-        return 0
+        return
     x1, y1 = x0 + side, y0 + side
     pixels = max(16, int(round(side / pixel)))
     scan = yield Msg("full_scan", (pixels, (float(x0), float(y0), float(x1), float(y1))))
@@ -261,18 +251,19 @@ def _survey_window(ctx: RunContext, window, k: int, tip_radius: float, sought: s
     yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"survey window {k}, {pixels} x {pixels} "
                                                            f"px, {t1 - t0:.1f} s")))
     env = identify(scan, tip_radius=tip_radius)
-    line_time = (t1 - t0) / pixels
-    corner = np.asarray(env.origin, float)
+    corner, line_time = np.asarray(env.origin, float), (t1 - t0) / pixels
 
-    def layout_frame(at) -> np.ndarray:             # a scanner point, by its row's drift
+    def seen(at) -> tuple[np.ndarray, float]:       # a scan point in the layout frame, by its row's time
         at = np.asarray(at, float) + corner
-        return at - ctx.offset(t0 + (min(max((at[1] - y0) / (side / pixels), 0.0), pixels - 1.0) + 0.5)
-                               * line_time)
+        t = t0 + (min(max((at[1] - y0) / (side / pixels), 0.0), pixels - 1.0) + 0.5) * line_time
+        return at - ctx.offset(t), t
 
-    found = [(replace(o, at=tuple(float(v) for v in layout_frame(o.at))),
-              t0 + (min(max((o.at[1] + corner[1] - y0) / (side / pixels), 0.0), pixels - 1.0) + 0.5) * line_time)
-             for o in env.objects if not o.edge and o.kind in ("particle", "rod")]
-    clumps = [(np.array([layout_frame(p) for p in ob.polygon]), ob.height) for ob in env.obstacles]
+    found = []
+    for o in env.objects:
+        if not o.edge and o.kind in ("particle", "rod"):
+            at, t = seen(o.at)
+            found.append((replace(o, at=(float(at[0]), float(at[1]))), t))
+    clumps = [(np.array([seen(p)[0] for p in ob.polygon]), ob.height) for ob in env.obstacles]
     region = (float(x0 - off[0]), float(y0 - off[1]), float(x1 - off[0]), float(y1 - off[1]))
     lines, unseen = _associate(ctx, region, found, clumps, pixel, sought)
     for oid in unseen:            # a crowded window may hide what a local scan still finds
@@ -286,7 +277,6 @@ def _survey_window(ctx: RunContext, window, k: int, tip_radius: float, sought: s
     yield Msg("event", (f"survey {k} of ({region[0]:.0f}, {region[1]:.0f})-({region[2]:.0f}, "
                         f"{region[3]:.0f}), {pixels} x {pixels} px: {len(found)} object(s) seen"
                         + ("; " + "; ".join(lines) if lines else "; the belief holds"),))
-    return len(lines)
 
 
 def _inside(o, region, margin: float = 0.0) -> bool:
@@ -305,20 +295,21 @@ def _associate(ctx: RunContext, region, found, clumps, pixel: float, sought=froz
     from scipy.optimize import linear_sum_assignment
 
     belief, out = ctx.belief, []
-    blobs = [(shapely.Polygon(c), h) for c, h in clumps if len(c) >= 3]
-    hidden = {oid for oid, o in belief.objects.items()
-              if any(h >= 0.5 * o.diameter and b.distance(shapely.Point(*ctx.position(oid))) <= CLUMP_REACH
-                     for b, h in blobs)}
     near = [oid for oid, o in belief.objects.items()
             if oid not in ctx.ledger.given_up and o.kind in ("particle", "rod")
             and ((oid in belief.lost and _inside(o, region, -GATE_LOST))
                  or (oid not in belief.lost and _inside(o, region)))]
+    where = {oid: ctx.position(oid) for oid in near}
+    blobs = [(shapely.Polygon(c), h) for c, h in clumps if len(c) >= 3]
+    hidden = {oid for oid in near if any(h >= 0.5 * belief[oid].diameter
+                                         and b.distance(shapely.Point(*where[oid])) <= CLUMP_REACH
+                                         for b, h in blobs)}
     cost = np.full((len(near), len(found)), 1e9)
     for i, oid in enumerate(near):
         o = belief[oid]
         gate = GATE_LOST if oid in belief.lost else GATE
         for j, (s, _) in enumerate(found):
-            d = math.dist(ctx.position(oid), s.at)
+            d = math.dist(where[oid], s.at)
             if s.kind == o.kind and d <= gate:
                 cost[i, j] = d
     rows, cols = linear_sum_assignment(cost) if cost.size else ((), ())

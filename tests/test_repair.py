@@ -5,7 +5,6 @@ executor never reads it)."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
@@ -140,7 +139,7 @@ def test_what_a_round_surveys_first_empty_particle_slots_their_objects_and_overl
     layout = Layout((4000.0, 4000.0), targets, tolerance=Tolerance(position=20.0))
     verdicts = (SlotVerdict("s1", "a", "missed", 141.0), SlotVerdict("s2", None, "filled", 3.0),
                 SlotVerdict("s3", "d", "missed", 8.0), SlotVerdict("bar", None, "unfilled", None))
-    out = repair.doubtful_windows(ctx, layout, verdicts)
+    out = repair.doubtful_windows(ctx, repair._particle_slots_not_filled(layout, verdicts))
     centre = lambda w: ((w[0] + w[2]) / 2, (w[1] + w[3]) / 2)  # noqa: E731
     inside = lambda at: any(w[0] <= at[0] <= w[2] and w[1] <= at[1] <= w[3] for w in out)  # noqa: E731
     assert inside((400, 400)) and inside((500, 500))            # s1 and its object a
@@ -197,10 +196,10 @@ def test_an_object_lost_in_a_drift_jump_is_looked_for_where_its_pushes_went():
     assert any("is not there" in t for t in events.texts), events.texts
     assert any("found again" in t for t in events.texts), events.texts
     assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
-    assert math.isfinite(out.report.instrument_time.total)
+    assert sum(t.startswith("survey ") for t in events.texts) <= repair.MAX_WINDOWS
 
 
-def test_no_repair_round_when_every_slot_is_filled_or_rounds_are_off():
+def test_no_repair_round_when_rounds_are_off():
     scene, layout = family_case("allpushed", 4)
     change = replace(scene.params.drift_change, jump=300.0, jump_at=900.0)
     scene = replace(scene, params=replace(scene.params, drift_change=change))
