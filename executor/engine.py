@@ -149,6 +149,7 @@ class RunEngine:
                 if not isinstance(msg, Msg):
                     raise TypeError(f"a procedure must yield Msg objects, got {type(msg).__name__}")
                 self.messages += 1
+                signals.check()                 # a Ctrl-C whose exception was swallowed stops the run here
                 reply = self._dispatch(msg)
         except (KeyboardInterrupt, Terminated) as exc:
             signals.stopping = True             # first: a further signal is held from here on
