@@ -220,7 +220,7 @@ def test_a_kept_file_is_json_and_a_crafted_one_runs_nothing(tmp_path):
         "a pickle, which nanoasm no longer opens": pickle.dumps(_Evil(marker)),
         "not JSON": json.dumps({**doc, "t": math.nan}).encode(),
         "not a nanoasm simulated world": json.dumps({**doc, "format": "nanoasm.simstate/1"}).encode(),
-        "world: tip.f_lat: must be a number": json.dumps(_at(doc, "world.tip.f_lat", None)).encode(),
+        "world: tip.force: must be an array of two numbers": json.dumps(_at(doc, "world.tip.force", None)).encode(),
         "world: scene_sha256": json.dumps(_at(doc, "world.scene_sha256", "x")).encode(),
         "initial: the objects at the start are not the log's": json.dumps({**doc, "initial": []}).encode(),
         "initial[1].diameter": json.dumps(_at(doc, "initial.0.diameter", -1)).encode(),

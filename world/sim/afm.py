@@ -155,7 +155,7 @@ class SimulatedAFM(SimulatedInstrument):
         t = self._clock.now + np.arange(1, n + 1) / cfg.sample_rate
         off = np.stack(self._drift.offset(t), axis=-1)
         played = play_chunk(self._world, self._model, nm, off, self._state, cfg.max_step)
-        sn_bar, sl_bar = self._model.bar_signals(played.f_lat, played.motion, played.deflection)
+        sn_bar, sl_bar = self._model.bar_signals(played.force, played.deflection)
         s_n, s_l = self._model.raw(sn_bar, sl_bar, nm[:, 0], nm[:, 2] + played.deflection,
                                    self._rng_signal)
         if activity is None:

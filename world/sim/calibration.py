@@ -107,7 +107,7 @@ def force_curve_signals(model: SignalModel, params: WorldParams, x: float, z_top
     defl_ret = np.where(held, -z_ret, 0.0)
     out = []
     for z, defl in ((z_app, defl_app), (z_ret, defl_ret)):
-        sn_bar, sl_bar = model.bar_signals(np.zeros(n), np.zeros((n, 2)), defl)
+        sn_bar, sl_bar = model.bar_signals(np.zeros((n, 2)), defl)
         out += list(model.raw(sn_bar, sl_bar, np.full(n, x), z + defl, rng))
     return ForceCurve(z_app, out[0], out[1], z_ret, out[2], out[3])
 

@@ -153,7 +153,7 @@ class CalibrationAFM(SimulatedInstrument):
         _, motion = _motion(piezo, z <= h, self._state)
         moving = np.any(motion != 0.0, axis=1)
         f_lat = np.where(moving, slope_friction(k * defl, self._slope_along(tip, motion), self.mu, self.shear), 0.0)
-        sn_bar, sl_bar = model.bar_signals(f_lat, motion, defl)
+        sn_bar, sl_bar = model.bar_signals(-f_lat[:, None] * motion, defl)
         s_n, s_l = model.raw(sn_bar, sl_bar, piezo[:, 0], z + defl, self._rng)
         contact = int(np.count_nonzero(defl > 0))
         self._clock.samples(contact, cfg.sample_rate, "push")

@@ -22,6 +22,12 @@ Motion per step (tip from ``p0`` to ``p1``, sample frame, nm):
   rises by the lever's stiffness (``lateral_gain / C1``) times the piezo's overshoot until
   its vertical part lifts the tip over the object.
 
+The lateral force on the tip (:meth:`PushPhysics.step`) is a vector: the object's contact
+force (eq. 4.4's ``(F^r_to - F^a_to) cos θ``) along the contact normal, from the object's
+nearest core point to the tip, plus the tip–substrate friction on the excess load
+(``μts (F_z - F̄z)``) against the tip's motion. A particle pushed off-centre thus twists
+the lever towards its side, as it does a real one (issue 13: what in-push tracking reads).
+
 What an object shoves moves through :class:`~nanoasm.world.sim.contacts.SimContacts`;
 when a push ends, each moved object that ends near another gets the random van der Waals
 error of ``[vdw]`` (seed 3.6.1), once. Forces in nN.
@@ -74,6 +80,7 @@ class Episode:
     faults: PushFaults
     theta: float = 0.0        # θ = θx + γ, deg
     f_push: float = 0.0       # lateral force while it moves, nN (particles and wires)
+    f_fric: float = 0.0       # its tip–substrate friction part μts (F_z - F̄z), nN
     branch: int = 1
     travelled: float = 0.0    # nm the tip moved while pushing
     moved: set[int] = field(default_factory=set)
@@ -88,27 +95,43 @@ class PushPhysics(PushWorld):
              lifting: bool = False, lag: tuple[float, float] = (0.0, 0.0)):
         """The tip moves from ``p0`` to ``p1`` in contact with normal force ``f_z`` (nN).
 
-        ``objs`` are the objects near the tip. Returns ``(pushing, f_lat, ride)``:
-        whether an object resists the tip, the lateral force it puts on the tip (nN,
-        against the motion) and the height (nm) the apex rides over an object. A tip
+        ``objs`` are the objects near the tip. Returns ``(pushing, force, ride)``:
+        whether an object resists the tip, the lateral force ``(fx, fy)`` (nN) the
+        objects put on the tip (contact normal and friction, see the module's text) and
+        the height (nm) the apex rides over an object. A tip
         that is ``lifting`` (unloading) or does not move pushes nothing. ``lag`` (nm) is
         the part of the tip's offset from the piezo that the lateral force causes.
         """
-        pushing, f_lat, ride = False, 0.0, 0.0
+        pushing, fx, fy, ride = False, 0.0, 0.0, 0.0
         self.lag = lag
         self.steps += 1
-        if lifting or math.hypot(p1[0] - p0[0], p1[1] - p0[1]) < STILL:
+        ds = math.hypot(p1[0] - p0[0], p1[1] - p0[1])
+        if lifting or ds < STILL:
             for o in objs:
                 ep = self.episodes.get(int(o))
                 if ep is not None and ep.mode == RIDE:
                     ride = max(ride, self.ride_height(int(o), p1))
-            return pushing, f_lat, ride
+            return pushing, (fx, fy), ride
+        motion = ((p1[0] - p0[0]) / ds, (p1[1] - p0[1]) / ds)
         for o in objs:
             p, f, h = self._step_object(int(o), p0, p1, f_z, theta)
             pushing |= p
-            f_lat += f
+            if f != 0.0:
+                gx, gy = self._force(int(o), p1, motion, f)
+                fx += gx
+                fy += gy
             ride = max(ride, h)
-        return pushing, f_lat, ride
+        return pushing, (fx, fy), ride
+
+    def _force(self, o: int, p1, motion, magnitude: float) -> tuple[float, float]:
+        """The lateral force (nN) of ``magnitude`` that object ``o`` puts on the tip at
+        ``p1``: its friction part against the tip's ``motion``, the rest along the contact
+        normal (from the object's nearest core point to the tip)."""
+        ep = self.episodes.get(o)
+        ff = min(ep.f_fric, magnitude) if ep is not None else 0.0
+        (nx, ny), _ = self.normal(o, p1)
+        fc = magnitude - ff
+        return -nx * fc - motion[0] * ff, -ny * fc - motion[1] * ff
 
     def end_all(self) -> None:
         """End every push in progress (the tip lifted or left)."""
@@ -165,6 +188,8 @@ class PushPhysics(PushWorld):
             else:
                 ep.f_push = float(push_lateral_force(theta, t.mu_os[o], t.nu[o], f_os, self.f_ts,
                                                      f_z, self.mu_ts))
+                ep.f_fric = ep.f_push - float(push_lateral_force(theta, t.mu_os[o], t.nu[o], f_os, self.f_ts,
+                                                                 f_z, 0.0))
         return ep
 
     def _affect(self, b) -> float:
@@ -266,9 +291,11 @@ class PushPhysics(PushWorld):
             ep.mode = RIDE
             self.slips += 1
             return False, 0.0, self.ride_height(o, p1)
-        f_lat = float(push_lateral_force(ep.theta, t.mu_os[o], t.nu[o], t.f_os_a[o], self.f_ts, f_z,
-                                         self.mu_ts, float(rho(motion.l, L))))
+        r = float(rho(motion.l, L))
+        f_lat = float(push_lateral_force(ep.theta, t.mu_os[o], t.nu[o], t.f_os_a[o], self.f_ts, f_z, self.mu_ts, r))
         ep.f_push = f_lat
+        ep.f_fric = f_lat - float(push_lateral_force(ep.theta, t.mu_os[o], t.nu[o], t.f_os_a[o], self.f_ts, f_z,
+                                                     0.0, r))
         if self.hits_obstacle(motion.body):
             return self._blocked(o, ep, p1, f_lat, f_z)
         if self._slipped(ep, p0, p1):

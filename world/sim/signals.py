@@ -2,8 +2,11 @@
 
 Forces (nN, AFM frame) on the tip: the lever's normal load ``k × deflection`` (the tip
 pressed ``-z`` into a hard surface, plus any height it rides over an object) and a
-lateral force against the tip's motion (tip–substrate friction μts(F_z + F^a_ts), or the
-push of eq. 4.4). They reach the detector as the seed describes (ch. 3):
+lateral force: tip–substrate friction μts(F_z + F^a_ts) against the tip's motion, or
+while it pushes (eq. 4.4) the object's contact force along the tip–object contact normal
+plus the friction on the excess load against the motion, so an object pushed off-centre
+twists the lever to its side (:mod:`~nanoasm.world.sim.push`). They reach the detector as
+the seed describes (ch. 3):
 
 - the cantilever frame by R(ψ) (eq. 3.7), then S̄_n, S̄_l by
   :func:`~nanoasm.world.cantilever.signals_from_force` (eq. 3.5, 3.6, 3.9, saturating);
@@ -71,11 +74,10 @@ class SignalModel:
         """``(n, 2)`` nm: where the deflected tip sits relative to the piezo."""
         return np.stack([sn_bar, sl_bar], axis=-1) @ self.offset_matrix.T
 
-    def bar_signals(self, f_lat: np.ndarray, motion: np.ndarray, deflection: np.ndarray):
-        """Compensated signals ``(S̄_n, S̄_l)`` (V) for lateral forces ``f_lat`` (nN, against
-        the unit ``motion`` ``(n, 2)``, zero rows when still) and deflections (nm)."""
-        f = np.stack([-f_lat * motion[:, 0], -f_lat * motion[:, 1],
-                      self.lever.spring_constant * deflection], axis=-1)
+    def bar_signals(self, force: np.ndarray, deflection: np.ndarray):
+        """Compensated signals ``(S̄_n, S̄_l)`` (V) for lateral forces ``force`` on the tip
+        (nN, ``(n, 2)``, AFM frame) and deflections (nm)."""
+        f = np.column_stack([force[:, 0], force[:, 1], self.lever.spring_constant * deflection])
         return signals_from_force(to_cantilever(f, self.psi), self.lever)
 
     def baselines(self, x: np.ndarray, height: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -88,7 +88,7 @@ def sim_state(sim: SimulatedAFM) -> dict:
                        "piezo_xy": None if sim._piezo_xy is None else _xy(sim._piezo_xy),
                        "signals": _xy(sim._signals)},
         "tip": {"piezo": _xy(tip.piezo), "tip": _xy(tip.tip), "z": float(tip.z), "sl_bar": float(tip.sl_bar),
-                "ride": float(tip.ride), "motion": _xy(tip.motion), "f_lat": float(tip.f_lat)},
+                "ride": float(tip.ride), "motion": _xy(tip.motion), "force": _xy(tip.force)},
         "drift": {"epoch": float(dm.epoch), "moves_t": [float(v) for v in dm._moves_t],
                   "moves_s": [_xy(s) for s in dm._moves_s]},
         "moves": {"start": _xy(sim._moves.start), "still": int(sim._moves.still),
@@ -107,7 +107,8 @@ def sim_state(sim: SimulatedAFM) -> dict:
 
 def _episode(ep: Episode) -> dict:
     f = ep.faults
-    return {"mode": ep.mode, "theta": float(ep.theta), "f_push": float(ep.f_push), "branch": int(ep.branch),
+    return {"mode": ep.mode, "theta": float(ep.theta), "f_push": float(ep.f_push), "f_fric": float(ep.f_fric),
+            "branch": int(ep.branch),
             "travelled": float(ep.travelled), "moved": sorted(int(u) for u in ep.moved),
             "heading": None if ep.heading is None else _xy(ep.heading),
             "trail": None if ep.trail is None else _xy(ep.trail),
@@ -166,10 +167,13 @@ def _instrument(sim: SimulatedAFM, t: Table) -> None:
                          dtype=np.int64)
     sim._piezo_xy = None if ins.is_null("piezo_xy") else np.array(ins.pair("piezo_xy"))
     sim._signals = ins.pair("signals")
-    tip = _table(t, "tip", "piezo", "tip", "z", "sl_bar", "ride", "motion", "f_lat")
+    tip = t.table("tip")
+    tip.check_keys(required=("piezo", "tip", "z", "sl_bar", "ride", "motion"), optional=("force", "f_lat"))
+    motion = np.array(tip.pair("motion"))
+    # the lateral force on the tip; a state kept before it was a vector held its size against the motion
+    force = np.array(tip.pair("force")) if "force" in tip.data else -tip.number("f_lat") * motion
     sim._state = TipState(np.array(tip.pair("piezo")), tip.pair("tip"), tip.number("z"),
-                          tip.number("sl_bar"), tip.number("ride"), np.array(tip.pair("motion")),
-                          tip.number("f_lat"))
+                          tip.number("sl_bar"), tip.number("ride"), motion, force)
     drift = _table(t, "drift", "epoch", "moves_t", "moves_s")
     dm = sim._drift.drift
     dm.epoch = drift.number("epoch")
@@ -235,7 +239,7 @@ def _wire_object(x: Table, wires: dict) -> int:
 
 def _read_episode(x: Table, n_units: int) -> Episode:
     x.check_keys(required=("object", "mode", "theta", "f_push", "branch", "travelled", "moved", "heading",
-                           "trail", "faults"))
+                           "trail", "faults"), optional=("f_fric",))
     f = _table(x, "faults", "stuck", "lost", "blunt", "slip_after", "jump")
     faults = PushFaults(stuck=f.boolean("stuck"),
                         slip_after=math.inf if f.is_null("slip_after") else f.number("slip_after", nonnegative=True),
@@ -245,7 +249,8 @@ def _read_episode(x: Table, n_units: int) -> Episode:
         x.fail("branch", f"must be -1 or 1, got {branch}")
     moved = {_code(x, f"moved[{k + 1}]", v, n_units - 1) for k, v in enumerate(x.array("moved"))}
     return Episode(x.string("mode", choices=(PUSH, RIDE, GONE)), faults, x.number("theta"),
-                   x.number("f_push"), branch, x.number("travelled", nonnegative=True), moved,
+                   x.number("f_push"), 0.0 if "f_fric" not in x.data else x.number("f_fric", nonnegative=True),
+                   branch, x.number("travelled", nonnegative=True), moved,
                    None if x.is_null("heading") else x.pair("heading"),
                    None if x.is_null("trail") else x.pair("trail"))
 

@@ -29,7 +29,8 @@ from .signals import SignalModel, twist_deg
 
 @dataclass
 class TipState:
-    """The tip at the last sample played: piezo XY (scanner), tip XY (sample frame), Z, S̄_l, ride."""
+    """The tip at the last sample played: piezo XY (scanner), tip XY (sample frame), Z, S̄_l,
+    ride, the direction of the lateral motion and the lateral force on the tip (nN, AFM frame)."""
 
     piezo: np.ndarray
     tip: tuple[float, float]
@@ -37,15 +38,16 @@ class TipState:
     sl_bar: float = 0.0
     ride: float = 0.0
     motion: np.ndarray = field(default_factory=lambda: np.zeros(2))
-    f_lat: float = 0.0
+    force: np.ndarray = field(default_factory=lambda: np.zeros(2))
 
 
 @dataclass(frozen=True, eq=False)
 class Played:
-    """Per sample: deflection (nm), lateral force (nN), unit motion ``(n, 2)``, tip ``(n, 2)``."""
+    """Per sample: deflection (nm), lateral force on the tip ``(n, 2)`` (nN, AFM frame), unit
+    motion ``(n, 2)``, tip ``(n, 2)``."""
 
     deflection: np.ndarray
-    f_lat: np.ndarray
+    force: np.ndarray
     motion: np.ndarray
     tip: np.ndarray
 
@@ -61,11 +63,11 @@ def play_chunk(world: PushPhysics, model: SignalModel, nm: np.ndarray, off: np.n
     ds, motion = _motion(piezo, contact, state)
     k = model.lever.spring_constant
     moved = np.any(motion != 0.0, axis=1)
-    f_fric = np.where(contact & moved, world.mu_ts * (k * np.maximum(-z, 0.0) + world.f_ts), 0.0)
-    sn, sl = model.bar_signals(f_fric, motion, np.maximum(-z, 0.0))
+    f_fric = -np.where(contact & moved, world.mu_ts * (k * np.maximum(-z, 0.0) + world.f_ts), 0.0)[:, None] * motion
+    sn, sl = model.bar_signals(f_fric, np.maximum(-z, 0.0))
     tip = piezo + model.tip_offset(sn, sl) - off
     h_obs = world.obstacle_heights(tip[:, 0], tip[:, 1])
-    f_lat = f_fric.copy()
+    force = f_fric.copy()
     defl = np.maximum(h_obs - z, 0.0)
     n, i, version = len(z), 0, None
     margin = max_step + world.release + 2.0 * model.lever.c2 * world.max_height / model.lever.normal_gain + 1.0
@@ -78,13 +80,12 @@ def play_chunk(world: PushPhysics, model: SignalModel, nm: np.ndarray, off: np.n
         while j < n and slow[j - base] == s:
             j += 1
         if s:
-            _slow_run(world, model, piezo, z, off, ds, motion, f_fric, h_obs, state, i, j, margin,
-                      defl, f_lat, tip)
+            _slow_run(world, model, piezo, z, off, ds, f_fric, h_obs, state, i, j, margin, defl, force, tip)
         else:
             if world.episodes:
                 world.end_all()
             defl[i:j] = np.maximum(np.maximum(h_obs[i:j], h_obj[i - base:j - base]) - z[i:j], 0.0)
-            sn, sl = model.bar_signals(f_fric[i:j], motion[i:j], defl[i:j])
+            sn, sl = model.bar_signals(f_fric[i:j], defl[i:j])
             tip[i:j] = piezo[i:j] + model.tip_offset(sn, sl) - off[i:j]
             state.tip = (float(tip[j - 1, 0]), float(tip[j - 1, 1]))
             state.sl_bar, state.ride = float(sl[-1]), 0.0
@@ -92,8 +93,8 @@ def play_chunk(world: PushPhysics, model: SignalModel, nm: np.ndarray, off: np.n
     state.piezo = piezo[-1].copy()
     state.z = float(z[-1])
     state.motion = motion[-1].copy()
-    state.f_lat = float(f_lat[-1])
-    return Played(defl, f_lat, motion, tip)
+    state.force = force[-1].copy()
+    return Played(defl, force, motion, tip)
 
 
 def _motion(piezo: np.ndarray, contact: np.ndarray, state: TipState) -> tuple[np.ndarray, np.ndarray]:
@@ -135,20 +136,24 @@ def _classify(world: PushPhysics, tip: np.ndarray, z: np.ndarray, contact: np.nd
     return slow, h_obj
 
 
-def _slow_run(world: PushPhysics, model: SignalModel, piezo, z, off, ds, motion, f_fric, h_obs,
-              state: TipState, i: int, j: int, margin: float, defl, f_lat, tip) -> None:
-    """Samples ``i:j`` one by one through the pushing physics (results written in place)."""
+def _slow_run(world: PushPhysics, model: SignalModel, piezo, z, off, ds, f_fric, h_obs,
+              state: TipState, i: int, j: int, margin: float, defl, force, tip) -> None:
+    """Samples ``i:j`` one by one through the pushing physics (results written in place).
+    The signals that deflect the tip at a sample are those of the force at the one before
+    (eq. 3.5, 3.6, 3.9: S̄_n = (F_z + (h/l) F_x) / (k K_n), S̄_l = F_y / (k_l K_l / h))."""
     lever = model.lever
     (m00, m01), (m10, m11) = model.offset_matrix
-    r10, r11 = _rotation_row(model.psi)
+    (r00, r01), (r10, r11) = _rotation_rows(model.psi)
     kn, lg, k = lever.normal_gain, lever.lateral_gain, lever.spring_constant
+    hl = lever.tip_height / lever.lever_length / (k * kn)
     lo, hi = tip[i:j].min(axis=0), tip[i:j].max(axis=0)
     cands = world.candidates(lo, hi, world.tip_radius + margin)
     p0, sl, ride = state.tip, state.sl_bar, state.ride
     z_prev = z[i - 1] if i > 0 else state.z
-    held = f_lat[i - 1] if i > 0 else state.f_lat
+    held = force[i - 1].copy() if i > 0 else state.force.copy()
+    fx_c = r00 * held[0] + r01 * held[1]        # the held force along the cantilever's X
     for q in range(i, j):
-        sn = (max(ride, h_obs[q]) - z[q]) / kn
+        sn = (max(ride, h_obs[q]) - z[q]) / kn + hl * fx_c
         p1 = (piezo[q, 0] + m00 * sn + m01 * sl - off[q, 0], piezo[q, 1] + m10 * sn + m11 * sl - off[q, 1])
         theta = world.half_angle + twist_deg(sl, lever)
         lifting = z[q] > z_prev
@@ -157,23 +162,24 @@ def _slow_run(world: PushPhysics, model: SignalModel, piezo, z, off, ds, motion,
         z_prev = z[q]
         defl[q] = max(max(h, h_obs[q]) - z[q], 0.0)
         if pushing:
-            f_lat[q] = f
+            force[q] = f
         elif ds[q] == 0.0 and not lifting:      # between DAC codes: the lever stays twisted
-            f_lat[q] = held
+            force[q] = held
         else:
-            f_lat[q] = f_fric[q]
-        held = f_lat[q]
-        sl = -f_lat[q] * (r10 * motion[q, 0] + r11 * motion[q, 1]) / lg
+            force[q] = f_fric[q]
+        held = force[q]
+        fx_c = r00 * held[0] + r01 * held[1]
+        sl = (r10 * held[0] + r11 * held[1]) / lg
         ride = h
         tip[q] = p1
         p0 = p1
     state.tip, state.sl_bar, state.ride = p0, sl, ride
 
 
-def _rotation_row(psi: float) -> tuple[float, float]:
-    """Second row of R(ψ) (eq. 3.7): the cantilever-frame y of an AFM-frame vector."""
+def _rotation_rows(psi: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The first two rows of R(ψ) (eq. 3.7): the cantilever-frame x and y of an AFM-frame vector."""
     c, s = math.cos(math.radians(psi)), math.sin(math.radians(psi))
-    return -s, -c
+    return (-c, s), (-s, -c)
 
 
 class MoveTracker:
