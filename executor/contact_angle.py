@@ -1,0 +1,115 @@
+"""Where a pushed object sits on the tip, from the forces the lever measures (issue 13).
+
+While the tip pushes, the object's contact force acts along the tip–object contact
+normal; the tip–substrate friction acts against the motion. The angle α from the tip's
+motion to that normal (counter-clockwise, the object to the left of the tip's line for
+α > 0) puts the object's centre at ``r_c sin α`` across the line, ``r_c`` the contact
+distance (object radius plus tip radius).
+
+The forces come from the compensated signals (eq. 3.28) by eq. 3.5, 3.6 and 3.9 in the
+cantilever frame: ``F_y = (k_l K_l / h) S̄_l`` and, with F_z unchanged, ``F_x = (l / h)
+k K_n ΔS̄_n``; eq. 3.12 (``R(ψ)⁻¹``) takes them to the AFM frame. Eq. 3.11 closes the
+system by assuming the force opposes the motion, which is what this estimate must not
+assume; F_z is instead eliminated by a reference: the samples where the tip slides in
+contact before it meets the object (the push is put down ``lead`` nm short of contact),
+whose force is friction alone, along the motion. The change from that reference to a
+window of the push is the contact force, less the change of friction on the excess
+load (``μ_ts F̄_z``, along the motion: it shortens the along-line part, so |α| reads a
+little large, never on the wrong side).
+
+Without calibrated baseline maps the lateral baseline is one number from free air,
+but the piezo's bow tilts it along the scanner's x (eq. 3.28's B(i, j), seed Fig. 3.14):
+over a leg of 400 nm that tilt reads as 4°. :func:`baseline_slope` measures it from the
+lifted travel before the push (S̄_l against x, the tip at one height) and
+:func:`contact_angle` removes it.
+
+Its uncertainty follows from the scatter of the samples in both windows (noise, and
+the object's own jitter); ``l / h`` (about 67 for the seed's lever) makes S̄_n the
+noisier channel, so a push along the cantilever's X axis measures α through S̄_l, far
+better than one along its Y axis measures it through S̄_n.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from nanoasm.world.cantilever import Cantilever, to_afm
+
+#: Least contact force (nN) for an angle: below it the tip is not against the object.
+MIN_FORCE = 2.0
+
+
+@dataclass(frozen=True)
+class ContactAngle:
+    """``angle`` (deg, from the motion to the contact normal, counter-clockwise), its 1σ
+    ``std`` (deg) and the contact force's size ``force`` (nN) over the window."""
+
+    angle: float
+    std: float
+    force: float
+
+    def lateral(self, contact_distance: float) -> tuple[float, float]:
+        """The object's centre across the tip's line (nm, + to the left) and its 1σ."""
+        a = math.radians(self.angle)
+        return contact_distance * math.sin(a), contact_distance * math.cos(a) * math.radians(self.std)
+
+
+def _mean_std(x: np.ndarray) -> tuple[float, float]:
+    n = x.size
+    return float(x.mean()), (float(x.std(ddof=1)) / math.sqrt(n) if n > 1 else math.inf)
+
+
+#: Least spread (nm) of scanner x over which the lateral baseline's slope is fitted.
+MIN_SPREAD = 200.0
+
+
+def baseline_slope(x: np.ndarray, sl_bar: np.ndarray) -> float:
+    """The lateral baseline's slope (V/nm along scanner x) from lifted samples at one
+    height: a least-squares line; 0 when their x spans less than :data:`MIN_SPREAD`."""
+    x = np.asarray(x, float)
+    if x.size < 3 or float(np.ptp(x)) < MIN_SPREAD:
+        return 0.0
+    return float(np.polyfit(x, np.asarray(sl_bar, float), 1)[0])
+
+
+def contact_angle(sn_bar: np.ndarray, sl_bar: np.ndarray, reference: np.ndarray, window: np.ndarray,
+                  motion, psi: float, lever: Cantilever, x: np.ndarray | None = None,
+                  slope: float = 0.0) -> ContactAngle | None:
+    """α from compensated signals ``sn_bar``, ``sl_bar`` (V) of one push: ``reference``
+    and ``window`` index the samples sliding before contact and those to measure;
+    ``motion`` is the tip's direction over the window (AFM frame), ``psi`` the scan angle
+    (deg); ``x`` the samples' scanner x (nm) with the lateral baseline's ``slope`` (V/nm,
+    :func:`baseline_slope`). None when either window is empty or the contact force is
+    below :data:`MIN_FORCE` (the tip is not against an object)."""
+    if len(reference) < 2 or len(window) < 2:
+        return None
+    if slope and x is not None:
+        sl_bar = np.asarray(sl_bar, float) - slope * np.asarray(x, float)
+    m = np.asarray(motion, float)
+    m = m / np.linalg.norm(m)
+    ref_n, ref_n_s = _mean_std(sn_bar[reference])
+    ref_l, ref_l_s = _mean_std(sl_bar[reference])
+    win_n, win_n_s = _mean_std(sn_bar[window])
+    win_l, win_l_s = _mean_std(sl_bar[window])
+    gx = lever.lever_length / lever.tip_height * lever.spring_constant * lever.normal_gain
+    fx, fy = gx * (win_n - ref_n), lever.lateral_gain * (win_l - ref_l)
+    sx, sy = gx * math.hypot(win_n_s, ref_n_s), lever.lateral_gain * math.hypot(win_l_s, ref_l_s)
+    f = to_afm(np.array([fx, fy]), psi)
+    across = np.array([-m[1], m[0]])
+    a, c = float(f @ m), float(f @ across)          # the force on the tip: back along, and across
+    size = math.hypot(a, c)
+    if size < MIN_FORCE:
+        return None
+    # the force on the tip is minus the contact normal: α = atan2(-c, -a)
+    angle = math.degrees(math.atan2(-c, -a))
+    # 1σ: the covariance of (a, c) from the cantilever-frame variances, across the radial direction
+    rot = to_afm(np.eye(2), psi)                    # rows: the cantilever x and y in the AFM frame
+    cov = rot.T @ np.diag([sx * sx, sy * sy]) @ rot
+    tangent = np.array([-math.sin(math.radians(angle)), math.cos(math.radians(angle))])   # in (−a, −c) terms
+    basis = np.array([m, across])                   # rows: along, across
+    t_afm = basis.T @ tangent
+    var = float(t_afm @ cov @ t_afm) if np.all(np.isfinite(cov)) else math.inf
+    return ContactAngle(angle, math.degrees(math.sqrt(var) / size) if math.isfinite(var) else math.inf, size)

@@ -1,0 +1,84 @@
+"""Where a pushed particle sits on the tip, from the signals of the push (issue 13, in-push
+tracking's measurement), against the simulated world's own physics."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from simkit import particle, push, world
+
+from nanoasm.executor.contact_angle import MIN_FORCE, baseline_slope, contact_angle
+from nanoasm.executor.monitor import PushMonitor
+from nanoasm.world.cantilever import SEED_LEVER
+
+R, TIP, LEAD = 45.0, 10.0, 20.0
+
+
+def _measured(direction, offset: float):
+    """A 90 nm particle pushed 400 nm along ``direction`` with the tip's line ``offset`` nm
+    to the left of its centre, put down LEAD nm short of contact: α as estimated from the
+    push's last 30 nm, and as the simulated truth has it at the end."""
+    sim = world([particle((2000.0, 2000.0), d=2 * R)])
+    sim._world.table.path_error[0] = 0.0
+    u = np.asarray(direction, float) / np.linalg.norm(direction)
+    v = np.array([-u[1], u[0]])
+    start = np.array([2000.0, 2000.0]) - u * (R + TIP + LEAD) + v * offset
+    block, codes = push(sim, start, start + 400.0 * u)
+    nm = sim.config.codes_to_nm(codes)
+    lifted = np.flatnonzero(nm[:, 2] >= sim.config.lift - 1e-6)
+    monitor = PushMonitor(sim.config.preload, lever=sim._model.lever)
+    monitor.set_baseline(block.s_n[lifted[:50]], block.s_l[lifted[:50]])
+    sn, sl = monitor.compensated(block.s_n, block.s_l)
+    contact = np.flatnonzero(nm[:, 2] <= -0.999 * sim.config.preload)
+    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(nm[contact, :2], axis=0).T))])
+    ref, win = contact[along <= 0.6 * LEAD], contact[along >= along[-1] - 30.0]
+    est = contact_angle(sn, sl, ref, win, u, sim.params.scanner.scan_angle, sim._model.lever, nm[:, 0],
+                        baseline_slope(nm[lifted, 0], sl[lifted]))
+    (b,) = sim.truth()
+    g = np.asarray(b.at) - (start + 400.0 * u)
+    return est, math.degrees(math.atan2(float(g @ v), float(g @ u)))
+
+
+@pytest.mark.parametrize("direction", [(1.0, 0.0), (0.0, 1.0), (0.6, 0.8), (-0.8, 0.6)])
+@pytest.mark.parametrize("offset", [-20.0, -5.0, 5.0, 20.0])
+def test_the_angle_from_the_forces_is_the_particles_on_the_tip(direction, offset):
+    """Within 5° (about 4 nm across the line at the contact distance, 55 nm) and on the
+    right side, whichever way the push runs across the cantilever."""
+    est, true = _measured(direction, offset)
+    assert est is not None and est.force > MIN_FORCE
+    assert math.copysign(1.0, est.angle) == math.copysign(1.0, true)
+    assert est.angle == pytest.approx(true, abs=5.0)
+    assert 0.0 < est.std < 5.0
+    lateral, std = est.lateral(R + TIP)
+    assert lateral == pytest.approx((R + TIP) * math.sin(math.radians(true)), abs=5.0) and std > 0.0
+
+
+def test_no_object_against_the_tip_gives_no_angle():
+    """Friction alone, in the reference and the window: no contact force, no angle."""
+    rng = np.random.default_rng(3)
+    sn, sl = 0.5 + rng.normal(0, 0.005, 400), 0.3 + rng.normal(0, 0.005, 400)
+    assert contact_angle(sn, sl, np.arange(100), np.arange(300, 400), (1.0, 0.0), 0.0, SEED_LEVER) is None
+    assert contact_angle(sn, sl, np.arange(1), np.arange(300, 400), (1.0, 0.0), 0.0, SEED_LEVER) is None
+
+
+@given(st.floats(-80.0, 80.0), st.floats(5.0, 60.0), st.floats(0.0, 360.0), st.floats(-180.0, 180.0))
+def test_a_contact_force_built_from_an_angle_gives_that_angle_back(alpha, force, heading, psi):
+    """Noise-free signals of a contact force at α from the motion, any motion, any scan
+    angle: α comes back exactly (eq. 3.5, 3.6, 3.9 and R(ψ) inverted)."""
+    from nanoasm.world.cantilever import signals_from_force, to_cantilever
+
+    h = math.radians(heading)
+    m = np.array([math.cos(h), math.sin(h)])
+    a = h + math.radians(alpha)
+    f_afm = -force * np.array([math.cos(a), math.sin(a)])
+    fc = to_cantilever(np.array([[*f_afm, 10.0]]), psi)
+    sn_w, sl_w = signals_from_force(fc, SEED_LEVER)
+    sn_r, sl_r = signals_from_force(np.array([[0.0, 0.0, 10.0]]), SEED_LEVER)
+    sn = np.concatenate([np.full(10, sn_r[0]), np.full(10, sn_w[0])])
+    sl = np.concatenate([np.full(10, sl_r[0]), np.full(10, sl_w[0])])
+    est = contact_angle(sn, sl, np.arange(10), np.arange(10, 20), m, psi, SEED_LEVER)
+    assert est is not None and est.angle == pytest.approx(alpha, abs=1e-6) and est.force == pytest.approx(force)
