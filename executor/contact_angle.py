@@ -19,7 +19,7 @@ little large, never on the wrong side).
 
 Without calibrated baseline maps the lateral baseline is one number from free air,
 but the piezo's bow tilts it along the scanner's x (eq. 3.28's B(i, j), seed Fig. 3.14):
-over a leg of 400 nm that tilt reads as 4°. :func:`baseline_slope` measures it from the
+over a 400 nm push along x on a 4 µm area that tilt reads as 2°. :func:`baseline_slope` measures it from the
 lifted travel before the push (S̄_l against x, the tip at one height) and
 :func:`contact_angle` removes it.
 
@@ -66,13 +66,21 @@ def _mean_std(x: np.ndarray) -> tuple[float, float]:
 MIN_SPREAD = 200.0
 
 
-def baseline_slope(x: np.ndarray, sl_bar: np.ndarray) -> float:
+#: Lifted samples farther than this (nm, along x) from the push do not fit its baseline's slope.
+SLOPE_REACH = 1000.0
+
+
+def baseline_slope(x: np.ndarray, sl_bar: np.ndarray, around: tuple[float, float] | None = None) -> float:
     """The lateral baseline's slope (V/nm along scanner x) from lifted samples at one
-    height: a least-squares line; 0 when their x spans less than :data:`MIN_SPREAD`."""
-    x = np.asarray(x, float)
+    height, those within :data:`SLOPE_REACH` of the x range ``around`` (the push's) if
+    given: a least-squares line; 0 when their x spans less than :data:`MIN_SPREAD`."""
+    x, sl_bar = np.asarray(x, float), np.asarray(sl_bar, float)
+    if around is not None:
+        near = (x >= around[0] - SLOPE_REACH) & (x <= around[1] + SLOPE_REACH)
+        x, sl_bar = x[near], sl_bar[near]
     if x.size < 3 or float(np.ptp(x)) < MIN_SPREAD:
         return 0.0
-    return float(np.polyfit(x, np.asarray(sl_bar, float), 1)[0])
+    return float(np.polyfit(x, sl_bar, 1)[0])
 
 
 def contact_angle(sn_bar: np.ndarray, sl_bar: np.ndarray, reference: np.ndarray, window: np.ndarray,
