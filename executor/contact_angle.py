@@ -121,3 +121,76 @@ def contact_angle(sn_bar: np.ndarray, sl_bar: np.ndarray, reference: np.ndarray,
     t_afm = basis.T @ tangent
     var = float(t_afm @ cov @ t_afm) if np.all(np.isfinite(cov)) else math.inf
     return ContactAngle(angle, math.degrees(math.sqrt(var) / size) if math.isfinite(var) else math.inf, size)
+
+
+#: Length (nm) of the push's end over which the angle is measured.
+WINDOW = 30.0
+#: Share of the lead (the tip's slide before contact) taken as the friction reference.
+REFERENCE_SHARE = 0.6
+#: Length (nm) after touch-down that sets the level the contact force's onset is told from,
+#: the length the force is smoothed over to find it, and the least reference left.
+SETTLE, SMOOTH, MIN_REFERENCE = 3.0, 4.0, 4.0
+
+
+def _onset(sn: np.ndarray, sl: np.ndarray, along: np.ndarray, lever: Cantilever) -> float:
+    """Where (nm along the push) the contact force first rises above its level over the
+    first :data:`SETTLE` nm by 5σ of the smoothed noise (at least :data:`MIN_FORCE`): the
+    object met earlier than the plan put it (its place along the push is known worst)."""
+    gx = lever.lever_length / lever.tip_height * lever.spring_constant * lever.normal_gain
+    first = np.flatnonzero(along <= SETTLE)
+    if first.size < 5:
+        first = np.arange(min(5, along.size))
+    fx, fy = gx * (sn - sn[first].mean()), lever.lateral_gain * (sl - sl[first].mean())
+    per_nm = along.size / max(float(along[-1]), 1e-9)
+    k = max(1, int(round(SMOOTH * per_nm)))
+    kernel = np.ones(k) / k
+    mag = np.hypot(np.convolve(fx, kernel, mode="same"), np.convolve(fy, kernel, mode="same"))
+    noise = math.hypot(float(fx[first].std()), float(fy[first].std())) / math.sqrt(k)
+    above = np.flatnonzero((mag > max(MIN_FORCE, 5.0 * noise)) & (along > SETTLE))
+    return float(along[above[0]]) if above.size else math.inf
+
+
+class PushSignals:
+    """The signals of one streamed push, kept chunk by chunk, and the angle at its end
+    (:meth:`angle`): the reference is the first ``REFERENCE_SHARE × lead`` nm of sliding
+    after touch-down, cut short where the contact force rises if the object was met
+    sooner (at least :data:`MIN_REFERENCE` nm, else no angle); the window is the last
+    :data:`WINDOW` nm in contact."""
+
+    def __init__(self, lead: float):
+        self.lead = float(lead)
+        self.push: list[tuple[np.ndarray, ...]] = []      # (S_n, S_l, x, y) of push samples
+        self.lifted: list[tuple[np.ndarray, ...]] = []    # the same of lifted travel
+
+    def add(self, s_n, s_l, xy, pushing: np.ndarray, lifted: np.ndarray) -> None:
+        """One chunk: raw signals, scanner ``xy`` ``(n, 2)`` nm, and which samples push
+        and which travel lifted."""
+        for keep, mask in ((self.push, pushing), (self.lifted, lifted)):
+            if mask.any():
+                keep.append((s_n[mask], s_l[mask], xy[mask, 0], xy[mask, 1]))
+
+    def angle(self, compensate, level: float, motion, psi: float, lever: Cantilever) -> ContactAngle | None:
+        """α at the push's end from the samples in contact (compensated S̄_n at least half
+        the preload's ``level``); ``compensate(s_n, s_l, xy)`` gives (S̄_n, S̄_l) (eq.
+        3.28, the push monitor's). None without enough samples or contact force."""
+        if not self.push:
+            return None
+        s_n, s_l, x, y = (np.concatenate(c) for c in zip(*self.push))
+        sn, sl = compensate(s_n, s_l, np.column_stack([x, y]))
+        down = sn >= 0.5 * level
+        sn, sl, x, y = sn[down], sl[down], x[down], y[down]
+        if x.size < 2:
+            return None
+        along = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+        if along[-1] < self.lead + WINDOW:           # too short to have both apart
+            return None
+        end = min(REFERENCE_SHARE * self.lead, _onset(sn, sl, along, lever) - SETTLE)
+        if end < MIN_REFERENCE:
+            return None
+        reference = np.flatnonzero(along <= end)
+        window = np.flatnonzero(along >= along[-1] - WINDOW)
+        slope = 0.0
+        if self.lifted:
+            ln, ll, lx, ly = (np.concatenate(c) for c in zip(*self.lifted))
+            slope = baseline_slope(lx, compensate(ln, ll, np.column_stack([lx, ly]))[1], (float(x.min()), float(x.max())))
+        return contact_angle(sn, sl, reference, window, motion, psi, lever, x, slope)

@@ -33,11 +33,14 @@ HOLD = 3
 @dataclass(frozen=True)
 class Verdict:
     """``status``: "pushing" (all well so far), "slipped", "stuck" or "no_contact";
-    ``index``: first sample of the failure within the block; ``peak_force`` nN."""
+    ``index``: first sample of the failure within the block; ``peak_force`` nN;
+    ``contact``: where the object sat on the tip at the push's end
+    (:class:`~.contact_angle.ContactAngle`), when measured."""
 
     status: str
     index: int | None = None
     peak_force: float = 0.0
+    contact: object | None = None
 
     @property
     def failed(self) -> bool:

@@ -17,6 +17,7 @@ import numpy as np
 from nanoasm.planner import Operation
 from nanoasm.world.cantilever import Cantilever
 
+from .contact_angle import PushSignals
 from .context import RunContext
 from .dac import plan_dac
 from .progress_docs import PROGRESS, ProgressDoc
@@ -86,12 +87,15 @@ def dac_doc(ctx: RunContext, codes, kind, block, every: int = DAC_LOG_EVERY) -> 
             "n": int(len(codes)), "every": every}
 
 
-def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_factor: float = 1.0):
+def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_factor: float = 1.0,
+                lead: float | None = None):
     """Travel to the push, lower, push, lift; watching the signals. Returns the verdict.
 
     An object the tip slipped over before is pushed with ``preload_factor`` times the
     preload (seed eq. 4.7: a larger normal force keeps the tip down), up to
-    :data:`PRELOAD_CAP` of the Z range."""
+    :data:`PRELOAD_CAP` of the Z range. With ``lead`` (nm the tip slides in contact
+    before it meets the object) the verdict says where the object sat on the tip at the
+    end (:mod:`.contact_angle`)."""
     cfg = ctx.config
     if preload_factor != 1.0:
         cfg = replace(cfg, preload=min(cfg.preload * preload_factor, PRELOAD_CAP * cfg.z_range))
@@ -105,6 +109,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     monitor = PushMonitor(cfg.preload, lever=lever, force_limit=ctx.options.force_limit, baselines=ctx.baselines,
                           friction=ctx.options.substrate_friction)
     verdict = None
+    kept = None if lead is None else PushSignals(lead)
     n_push = n_other = 0
     ends = {TRAVEL: None, PUSH: None}
     for chunk in dac.chunks(ctx.options.chunk):
@@ -121,6 +126,8 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
         pushing = chunk.kind == PUSH
         n_push += int(pushing.sum())
         n_other += int((~pushing).sum())
+        if kept is not None:
+            kept.add(block.s_n, block.s_l, cfg.codes_to_nm(chunk.codes)[:, :2], pushing, lifted)
         if pushing.any():
             v = monitor.check(block.s_n[pushing], block.s_l[pushing], cfg.codes_to_nm(chunk.codes[pushing])[:, :2])
             if v.failed:
@@ -134,11 +141,14 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
             _moved(ctx, current, *end)
     if verdict is None:
         verdict = monitor.finish()
+    path = np.asarray(op.tip_path, float)
+    if kept is not None and not verdict.failed:
+        verdict = replace(verdict, contact=kept.angle(monitor.compensated, monitor.level, path[-1] - path[-2],
+                                                      cfg.scan_angle, lever))
     if verdict.failed:
         yield from lift(ctx)
     ctx.ledger.times["push"] += n_push / cfg.sample_rate
     ctx.ledger.times["travel"] += n_other / cfg.sample_rate
-    path = np.asarray(op.tip_path, float)
     length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
     towards = f"towards {op.target}" if op.target is not None else "out of the way"
     yield Msg("emit", (PROGRESS, ProgressDoc("push", f"{op.object} {towards}, {length:.0f} nm of tip path: "

@@ -17,8 +17,11 @@ distance ``(R + r_tip) sin α_c / tan e`` came within 2 % of where the particle 
 dropped (``tests/test_push_legs.py``). Once a leg has measured the particle's own turn
 ``e``, the legs are cut to ``ℓ |tan e| + 3 √(σ_lat² + (ℓ tan 1°)²) ≤ (R + r_tip) sin α_c``.
 
-Between legs a single scan line across the push (sequential parallel pushing, Xu,
-Kalantari and Qian) measures the lateral coordinate; the longitudinal one is where the
+Between legs, with ``between_legs = "contact"`` (not the default), the lateral coordinate comes from
+the leg's own forces when they tell it well enough: the contact angle at the leg's end (:mod:`.contact_angle`) puts the
+particle at ``r_c`` from the tip's end along the contact normal, to within
+:data:`CONTACT_STD` nm (1σ). Before the last leg, and otherwise, a single scan line across the push (sequential
+parallel pushing, Xu, Kalantari and Qian) measures it; the longitudinal one is where the
 tip stopped, the particle against it. The lateral deviations measure the particle's own
 direction error (the same all along one push), and the next legs are aimed to cancel it.
 """
@@ -43,6 +46,15 @@ from .scan_steps import run_pattern
 MIN_LEG = 100.0
 #: Uncertainty (degrees) of a particle's direction error once a leg has measured it.
 LEARNT_HEADING_STD = 1.0
+#: Largest 1σ (nm) of a particle's place from the contact angle for it to stand in for a line.
+CONTACT_STD = 2.0
+#: The tip's own place at a leg's end, 1σ (nm): the DAC's following of the path, drift, the
+#: lever's calibration (across the push the contact angle's places scattered by 3 nm
+#: about the truth in the allpushed family, where its own σ said 1-2).
+TIP_STD = 3.0
+#: Least lead (nm) of a leg after the first: the particle's place along the push is known
+#: worst (10-20 nm), and the contact angle needs the tip to slide before it meets it.
+LEG_LEAD = 40.0
 
 
 def leg_length(radius: float, tip_radius: float, lateral_std: float, heading_std: float,
@@ -95,6 +107,23 @@ def across(ctx: RunContext, at, u, diameter: float, reach: float):
     return lateral, outcome.edges.centre_std or 1.0
 
 
+def _from_contact(contact, leg_op: Operation, aim, u, reach: float, capture_angle: float):
+    """The particle's lateral coordinate (nm along ``perp(u)`` from ``aim``) and its 1σ
+    from the contact angle at the leg's end, the particle ``reach`` nm (radius plus tip
+    radius) from the tip's end along the contact normal; None when not measured, not
+    within the capture cone, or not to :data:`CONTACT_STD`."""
+    if contact is None or abs(contact.angle) >= capture_angle:
+        return None
+    _, std = contact.lateral(reach)
+    if not std <= CONTACT_STD:
+        return None
+    path = np.asarray(leg_op.tip_path, float)
+    m = (path[-1] - path[-2]) / np.linalg.norm(path[-1] - path[-2])
+    a = math.radians(contact.angle)
+    particle = path[-1] + reach * (math.cos(a) * m + math.sin(a) * perp(m))
+    return float((particle - np.asarray(aim, float)) @ perp(np.asarray(u, float))), math.hypot(std, TIP_STD)
+
+
 def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, tip_radius: float, lead: float):
     """Push a particle from ``start`` (its measured pose) to ``op.expect.at`` in legs,
     one line across between them (see the module docstring). Returns ``(verdict, legs,
@@ -115,15 +144,24 @@ def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, t
         last = left <= 1.2 * length
         step = left if last else length
         aim = pos + step * _turned(u, -error)      # aimed so the particle's own turn lands it on the line
+        leg_lead = lead if legs == 0 or opts.between_legs != "contact" else max(lead, LEG_LEAD)
         leg_op = particle_push(Operation(op.id, op.object, op.target, op.tip_path, Expect(tuple(aim), None), op.kind),
-                               tuple(pos), start.radius, tip_radius, lead)
+                               tuple(pos), start.radius, tip_radius, leg_lead)
         if leg_op is None:
             return verdict, legs, op
-        verdict = yield from stream_push(ctx, leg_op, lever, preload)
+        verdict = yield from stream_push(ctx, leg_op, lever, preload, None if last or opts.between_legs != "contact" else leg_lead)
         legs += 1
         if last or verdict.failed:
             return verdict, legs, leg_op
-        seen = yield from across(ctx, aim, _turned(u, -error), 2 * start.radius, 3.0 * max(lat_std, 3.0) + 10.0)
+        # the last leg sets where the particle ends: it starts from a line's measurement
+        seen = None if opts.between_legs != "contact" or float(np.linalg.norm(goal - aim)) <= 1.2 * length else \
+            _from_contact(verdict.contact, leg_op, aim, _turned(u, -error), start.radius + tip_radius,
+                          opts.capture_angle)
+        how = "its contact angle"
+        if seen is None:
+            how = "a line across"
+            seen = yield from across(ctx, aim, _turned(u, -error), 2 * start.radius,
+                                     3.0 * max(lat_std, 3.0) + 10.0)
         if seen is None:                # off the tip: the scan after the push will look for it
             return verdict, legs, leg_op
         lateral, std = seen
@@ -133,5 +171,5 @@ def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, t
         turn = math.degrees(math.atan2(lateral, step))      # the particle's turn off the tip's line
         error, weight = (error * weight + turn) / (weight + 1.0), weight + 1.0
         lat_std = std
-        yield Msg("event", (f"{op.object}: leg {legs} of a push, {lateral:+.1f} nm off its line; "
+        yield Msg("event", (f"{op.object}: leg {legs} of a push, {lateral:+.1f} nm off its line (by {how}); "
                             f"its direction error now {error:+.2f}°",))
