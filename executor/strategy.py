@@ -99,9 +99,10 @@ class ExecOptions:
     between_legs : {"line", "contact"}
         How a long push's particle is located between its legs: a line across, or
         (``"contact"``) the leg's contact angle (:mod:`.contact_angle`), a line only
-        before the last leg. ``"line"`` by default: ``"contact"`` is faster (allpushed 42 -> 33 s per filled
-        slot) but on pushes of 4 µm and more the particle falls behind the tip's line by
-        some 11 nm a leg until the tip lands on it (``bench/RESULTS_pushes.md``).
+        before the last leg. ``"line"`` by default: ``"contact"`` is faster (allpushed
+        42 -> 33 s per filled slot) but on pushes of 4 µm and more, with creep, the
+        particle falls behind the tip's line by some 11 nm a leg until the tip lands on
+        it (``bench/RESULTS_pushes.md``).
     drift_q : float
         Process noise of the drift filter: random walk of the drift velocity, nm²/s³.
     drift_q_offset : float
