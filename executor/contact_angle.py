@@ -19,9 +19,9 @@ little large, never on the wrong side).
 
 Without calibrated baseline maps the lateral baseline is one number from free air,
 but the piezo's bow tilts it along the scanner's x (eq. 3.28's B(i, j), seed Fig. 3.14):
-over a 400 nm push along x on a 4 µm area that tilt reads as 2°. :func:`baseline_slope` measures it from the
-lifted travel before the push (S̄_l against x, the tip at one height) and
-:func:`contact_angle` removes it.
+over a 400 nm push along x on a 4 µm area that tilt reads as 2°. :func:`baseline_slope`
+measures it from the lifted travel before the push (S̄_l against x, the tip at one
+height) and :func:`contact_angle` removes it.
 
 Its uncertainty follows from the scatter of the samples in both windows (noise, and
 the object's own jitter); ``l / h`` (about 67 for the seed's lever) makes S̄_n the
@@ -58,8 +58,13 @@ class ContactAngle:
 
 
 def _mean_std(x: np.ndarray) -> tuple[float, float]:
-    n = x.size
-    return float(x.mean()), (float(x.std(ddof=1)) / math.sqrt(n) if n > 1 else math.inf)
+    """The mean of at least two samples and its standard error."""
+    return float(x.mean()), float(x.std(ddof=1)) / math.sqrt(x.size)
+
+
+def _gains(lever: Cantilever) -> tuple[float, float]:
+    """nN per volt of S̄_n change (F_x at constant F_z, eq. 3.6) and of S̄_l (F_y, eq. 3.9)."""
+    return lever.lever_length / lever.tip_height * lever.spring_constant * lever.normal_gain, lever.lateral_gain
 
 
 #: Least spread (nm) of scanner x over which the lateral baseline's slope is fitted.
@@ -102,25 +107,21 @@ def contact_angle(sn_bar: np.ndarray, sl_bar: np.ndarray, reference: np.ndarray,
     ref_l, ref_l_s = _mean_std(sl_bar[reference])
     win_n, win_n_s = _mean_std(sn_bar[window])
     win_l, win_l_s = _mean_std(sl_bar[window])
-    gx = lever.lever_length / lever.tip_height * lever.spring_constant * lever.normal_gain
-    fx, fy = gx * (win_n - ref_n), lever.lateral_gain * (win_l - ref_l)
-    sx, sy = gx * math.hypot(win_n_s, ref_n_s), lever.lateral_gain * math.hypot(win_l_s, ref_l_s)
+    gx, gy = _gains(lever)
+    fx, fy = gx * (win_n - ref_n), gy * (win_l - ref_l)
+    sx, sy = gx * math.hypot(win_n_s, ref_n_s), gy * math.hypot(win_l_s, ref_l_s)
     f = to_afm(np.array([fx, fy]), psi)
-    across = np.array([-m[1], m[0]])
-    a, c = float(f @ m), float(f @ across)          # the force on the tip: back along, and across
+    a, c = float(f @ m), float(f @ np.array([-m[1], m[0]]))   # the force on the tip: along, across
     size = math.hypot(a, c)
     if size < MIN_FORCE:
         return None
-    # the force on the tip is minus the contact normal: α = atan2(-c, -a)
-    angle = math.degrees(math.atan2(-c, -a))
-    # 1σ: the covariance of (a, c) from the cantilever-frame variances, across the radial direction
+    # the force on the tip is minus the contact normal: α = atan2(-c, -a); its 1σ is the
+    # force's error across its own direction over its size
     rot = to_afm(np.eye(2), psi)                    # rows: the cantilever x and y in the AFM frame
     cov = rot.T @ np.diag([sx * sx, sy * sy]) @ rot
-    tangent = np.array([-math.sin(math.radians(angle)), math.cos(math.radians(angle))])   # in (−a, −c) terms
-    basis = np.array([m, across])                   # rows: along, across
-    t_afm = basis.T @ tangent
-    var = float(t_afm @ cov @ t_afm) if np.all(np.isfinite(cov)) else math.inf
-    return ContactAngle(angle, math.degrees(math.sqrt(var) / size) if math.isfinite(var) else math.inf, size)
+    normal = np.array([-f[1], f[0]]) / size
+    return ContactAngle(math.degrees(math.atan2(-c, -a)), math.degrees(math.sqrt(float(normal @ cov @ normal)) / size),
+                        size)
 
 
 #: Length (nm) of the push's end over which the angle is measured.
@@ -136,11 +137,11 @@ def _onset(sn: np.ndarray, sl: np.ndarray, along: np.ndarray, lever: Cantilever)
     """Where (nm along the push) the contact force first rises above its level over the
     first :data:`SETTLE` nm by 5σ of the smoothed noise (at least :data:`MIN_FORCE`): the
     object met earlier than the plan put it (its place along the push is known worst)."""
-    gx = lever.lever_length / lever.tip_height * lever.spring_constant * lever.normal_gain
+    gx, gy = _gains(lever)
     first = np.flatnonzero(along <= SETTLE)
     if first.size < 5:
         first = np.arange(min(5, along.size))
-    fx, fy = gx * (sn - sn[first].mean()), lever.lateral_gain * (sl - sl[first].mean())
+    fx, fy = gx * (sn - sn[first].mean()), gy * (sl - sl[first].mean())
     per_nm = along.size / max(float(along[-1]), 1e-9)
     k = max(1, int(round(SMOOTH * per_nm)))
     kernel = np.ones(k) / k

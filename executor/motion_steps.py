@@ -126,10 +126,11 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
         pushing = chunk.kind == PUSH
         n_push += int(pushing.sum())
         n_other += int((~pushing).sum())
+        xy = cfg.codes_to_nm(chunk.codes)[:, :2] if kept is not None or pushing.any() else None
         if kept is not None:
-            kept.add(block.s_n, block.s_l, cfg.codes_to_nm(chunk.codes)[:, :2], pushing, lifted)
+            kept.add(block.s_n, block.s_l, xy, pushing, lifted)
         if pushing.any():
-            v = monitor.check(block.s_n[pushing], block.s_l[pushing], cfg.codes_to_nm(chunk.codes[pushing])[:, :2])
+            v = monitor.check(block.s_n[pushing], block.s_l[pushing], xy[pushing])
             if v.failed:
                 verdict = v
                 break

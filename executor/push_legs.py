@@ -49,8 +49,9 @@ LEARNT_HEADING_STD = 1.0
 #: Largest 1σ (nm) of a particle's place from the contact angle for it to stand in for a line.
 CONTACT_STD = 2.0
 #: The tip's own place at a leg's end, 1σ (nm): the DAC's following of the path, drift, the
-#: lever's calibration (across the push the contact angle's places scattered by 3 nm
-#: about the truth in the allpushed family, where its own σ said 1-2).
+#: lever's calibration (in one traced run, allpushed seed 1, 41 legs, the contact angle's
+#: places lay within 7 nm of the truth across the push, most within 4, where its own σ
+#: said 1-2 nm).
 TIP_STD = 3.0
 #: Least lead (nm) of a leg after the first: the particle's place along the push is known
 #: worst (10-20 nm), and the contact angle needs the tip to slide before it meets it.

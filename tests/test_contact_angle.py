@@ -11,7 +11,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from simkit import particle, push, world
 
-from nanoasm.executor.contact_angle import MIN_FORCE, baseline_slope, contact_angle
+from nanoasm.executor.contact_angle import MIN_FORCE, PushSignals, contact_angle
 from nanoasm.executor.monitor import PushMonitor
 from nanoasm.world.cantilever import SEED_LEVER
 
@@ -20,8 +20,9 @@ R, TIP, LEAD = 45.0, 10.0, 20.0
 
 def _measured(direction, offset: float):
     """A 90 nm particle pushed 400 nm along ``direction`` with the tip's line ``offset`` nm
-    to the left of its centre, put down LEAD nm short of contact: α as estimated from the
-    push's last 30 nm, and as the simulated truth has it at the end."""
+    to the left of its centre, put down LEAD nm short of contact: α as the push's kept
+    signals (:class:`PushSignals`, as a streamed push keeps them) give it at the end, and
+    as the simulated truth has it there."""
     sim = world([particle((2000.0, 2000.0), d=2 * R)])
     sim._world.table.path_error[0] = 0.0
     u = np.asarray(direction, float) / np.linalg.norm(direction)
@@ -29,15 +30,12 @@ def _measured(direction, offset: float):
     start = np.array([2000.0, 2000.0]) - u * (R + TIP + LEAD) + v * offset
     block, codes = push(sim, start, start + 400.0 * u)
     nm = sim.config.codes_to_nm(codes)
-    lifted = np.flatnonzero(nm[:, 2] >= sim.config.lift - 1e-6)
+    lifted = nm[:, 2] >= sim.config.lift - 1e-6
     monitor = PushMonitor(sim.config.preload, lever=sim._model.lever)
-    monitor.set_baseline(block.s_n[lifted[:50]], block.s_l[lifted[:50]])
-    sn, sl = monitor.compensated(block.s_n, block.s_l)
-    contact = np.flatnonzero(nm[:, 2] <= -0.999 * sim.config.preload)
-    along = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(nm[contact, :2], axis=0).T))])
-    ref, win = contact[along <= 0.6 * LEAD], contact[along >= along[-1] - 30.0]
-    est = contact_angle(sn, sl, ref, win, u, sim.params.scanner.scan_angle, sim._model.lever, nm[:, 0],
-                        baseline_slope(nm[lifted, 0], sl[lifted], (nm[contact, 0].min(), nm[contact, 0].max())))
+    monitor.set_baseline(block.s_n[lifted][:50], block.s_l[lifted][:50])
+    kept = PushSignals(LEAD)
+    kept.add(block.s_n, block.s_l, nm[:, :2], nm[:, 2] <= -0.999 * sim.config.preload, lifted)
+    est = kept.angle(monitor.compensated, monitor.level, u, sim.params.scanner.scan_angle, sim._model.lever)
     (b,) = sim.truth()
     g = np.asarray(b.at) - (start + 400.0 * u)
     return est, math.degrees(math.atan2(float(g @ v), float(g @ u)))

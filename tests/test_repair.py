@@ -221,6 +221,5 @@ def test_the_bundled_dry_run_fills_six_slots_and_says_so():
     from nanoasm.world.scene import load_scene
 
     scene, layout = load_scene(example("bowtie_scene.toml")), load_layout(example("bowtie.toml"))
-    events = Events()
-    out = dry_run(scene, layout, plan_options=PlanOptions(seed=0), subscribers=[events])
+    out = dry_run(scene, layout, plan_options=PlanOptions(seed=0))
     assert len(out.truly_filled) >= 6 and not out.disagreements, (out.truly_filled, out.disagreements)

@@ -101,9 +101,17 @@ def push_lateral_force(theta_deg, mu_os, nu, f_os_a, f_ts_a, f_z, mu_ts=0.0, rho
     friction on the excess load (eq. 4.4 with 4.6 and 4.7; μts is our parameter, the seed
     leaves F^f_ts unspecified). +inf if θ ≥ θmax.
     """
+    contact, friction = push_force_parts(theta_deg, mu_os, nu, f_os_a, f_ts_a, f_z, mu_ts, rho)
+    return contact + friction
+
+
+def push_force_parts(theta_deg, mu_os, nu, f_os_a, f_ts_a, f_z, mu_ts=0.0, rho=1.0):
+    """The two parts of :func:`push_lateral_force` (nN): the object's ``(F^r_to − F^a_to)
+    cos θ``, along the tip–object contact normal, and the tip–substrate friction
+    ``μts (F_z − F̄z)``, against the tip's motion."""
     th, t = _transmitted(theta_deg, mu_os, nu, f_os_a, rho)
     excess = np.maximum(_check("f_z", f_z) - min_normal_force(theta_deg, mu_os, nu, f_os_a, f_ts_a, rho), 0.0)
-    return t * np.cos(th) + _check("mu_ts", mu_ts, lo=0.0) * excess
+    return t * np.cos(th), _check("mu_ts", mu_ts, lo=0.0) * excess
 
 
 def push_outcome(f_z: float, theta_deg: float, mu_os: float, nu: float, f_os_a: float,

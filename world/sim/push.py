@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from nanoasm.world.particle_push import PushOutcome, particle_step, push_lateral_force, push_outcome
+from nanoasm.world.particle_push import PushOutcome, particle_step, push_force_parts, push_outcome
 from nanoasm.world.pivot import rho, rod_push_outcome
 
 from .faults import PushFaults, draw_push_faults
@@ -186,10 +186,9 @@ class PushPhysics(PushWorld):
                 ep.mode = RIDE
                 self.slips += 1
             else:
-                ep.f_push = float(push_lateral_force(theta, t.mu_os[o], t.nu[o], f_os, self.f_ts,
-                                                     f_z, self.mu_ts))
-                ep.f_fric = ep.f_push - float(push_lateral_force(theta, t.mu_os[o], t.nu[o], f_os, self.f_ts,
-                                                                 f_z, 0.0))
+                fc, ff = push_force_parts(theta, t.mu_os[o], t.nu[o], f_os, self.f_ts, f_z, self.mu_ts)
+                ep.f_push = float(fc + ff)
+                ep.f_fric = ep.f_push - float(fc)
         return ep
 
     def _affect(self, b) -> float:
@@ -291,11 +290,10 @@ class PushPhysics(PushWorld):
             ep.mode = RIDE
             self.slips += 1
             return False, 0.0, self.ride_height(o, p1)
-        r = float(rho(motion.l, L))
-        f_lat = float(push_lateral_force(ep.theta, t.mu_os[o], t.nu[o], t.f_os_a[o], self.f_ts, f_z, self.mu_ts, r))
-        ep.f_push = f_lat
-        ep.f_fric = f_lat - float(push_lateral_force(ep.theta, t.mu_os[o], t.nu[o], t.f_os_a[o], self.f_ts, f_z,
-                                                     0.0, r))
+        fc, ff = push_force_parts(ep.theta, t.mu_os[o], t.nu[o], t.f_os_a[o], self.f_ts, f_z, self.mu_ts,
+                                  float(rho(motion.l, L)))
+        f_lat = float(fc + ff)
+        ep.f_push, ep.f_fric = f_lat, f_lat - float(fc)
         if self.hits_obstacle(motion.body):
             return self._blocked(o, ep, p1, f_lat, f_z)
         if self._slipped(ep, p0, p1):

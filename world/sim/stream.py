@@ -43,12 +43,11 @@ class TipState:
 
 @dataclass(frozen=True, eq=False)
 class Played:
-    """Per sample: deflection (nm), lateral force on the tip ``(n, 2)`` (nN, AFM frame), unit
-    motion ``(n, 2)``, tip ``(n, 2)``."""
+    """Per sample: deflection (nm), lateral force on the tip ``(n, 2)`` (nN, AFM frame), tip
+    ``(n, 2)``."""
 
     deflection: np.ndarray
     force: np.ndarray
-    motion: np.ndarray
     tip: np.ndarray
 
 
@@ -94,7 +93,7 @@ def play_chunk(world: PushPhysics, model: SignalModel, nm: np.ndarray, off: np.n
     state.z = float(z[-1])
     state.motion = motion[-1].copy()
     state.force = force[-1].copy()
-    return Played(defl, force, motion, tip)
+    return Played(defl, force, tip)
 
 
 def _motion(piezo: np.ndarray, contact: np.ndarray, state: TipState) -> tuple[np.ndarray, np.ndarray]:
