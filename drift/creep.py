@@ -109,6 +109,49 @@ def creep_rate(t: float, move_times: np.ndarray, move_steps: np.ndarray,
     return amplitude * lengths / (math.log(10.0) * (tau + np.maximum(t - times, 0.0)))
 
 
+#: Shortest piece (nm) a continuous motion is recorded in when ``min_step`` is shorter.
+MIN_PIECE = 100.0
+#: Least time (s) between the pieces of a motion: a fast travel (50 µm/s) is recorded in
+#: pieces of 2.5 µm, not 500 nm, and its creep is summed over a few moves, not dozens.
+MIN_PIECE_TIME = 0.05
+
+
+def creep_moves(start, xy, t, min_step: float, last: float = -math.inf, rests=()) -> np.ndarray:
+    """Where a motion through the points ``xy`` ((n, 2) nm) at times ``t`` ((n,) s, in
+    order) is recorded as moves, from ``start``, the end of the last recorded move, made
+    at ``last``: the indices, in order, at which
+
+    - the displacement from the last recorded point first reaches ``max(min_step,
+      MIN_PIECE)``, at least :data:`MIN_PIECE_TIME` after the last recorded move (a
+      piece of the motion), or
+    - XY comes to rest (``rests``: indices) at least ``min_step`` from the last recorded
+      point (the end of a move).
+
+    Creep is linear in the step, so a motion creeps as the superposition of its pieces,
+    each from its own time: a push of several seconds (or legs one after another) has
+    crept during itself, and is not one step made at its end. The simulated instrument and
+    the drift estimate cut the same commanded path the same way."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    t = np.asarray(t, float).reshape(-1)
+    rests = np.sort(np.asarray(rests, np.int64).reshape(-1))
+    piece = max(float(min_step), MIN_PIECE)
+    here = np.asarray(start, float).reshape(2)
+    out, k0, n = [], 0, len(xy)
+    while k0 < n:
+        k1 = max(k0, int(np.searchsorted(t, last + MIN_PIECE_TIME - TIME_TOLERANCE, side="left")))
+        hit = np.flatnonzero(np.hypot(*(xy[k1:] - here).T) >= piece)
+        k = k1 + int(hit[0]) if hit.size else n
+        r = rests[(rests >= k0) & (rests < k)]
+        ended = np.flatnonzero(np.hypot(*(xy[r] - here).T) >= max(float(min_step), 1e-9)) if r.size else ()
+        if len(ended):
+            k = int(r[ended[0]])
+        elif k == n:
+            break
+        out.append(k)
+        here, last, k0 = xy[k], t[k], k + 1
+    return np.asarray(out, np.int64)
+
+
 #: A move this much (s) before the last recorded one is taken as made at the same time:
 #: instrument times summed in another order differ in the last bits (1e-12 s at 5000 s).
 TIME_TOLERANCE = 1e-6

@@ -336,15 +336,26 @@ class DriftFilter:
         the next reference places it. Returns whether it is long enough to creep
         (``creep.min_step``).
         """
-        tau, _ = self._relative(t)
-        kept = self.creep.record(tau, step)
+        return self.record_moves([t], [step]) == 1
+
+    def record_moves(self, times, steps) -> int:
+        """Register the pieces of one motion (:meth:`record_move` each, in time order).
+        The lasting offset of a time-constant error is common to them, so the estimate
+        widens once, by the sum of the pieces kept. Returns how many were kept."""
+        kept = np.zeros(2)
+        n = 0
+        for t, step in zip(times, steps):
+            tau, _ = self._relative(t)
+            if self.creep.record(tau, step):
+                kept += np.asarray(step, float).reshape(2)
+                n += 1
         c, sd = self.params.creep.amplitude, self.params.creep.tau_std
-        if kept and c > 0 and sd > 0:
+        if n and c > 0 and sd > 0:
             g = np.zeros((self._x.shape[0], 1))
-            g[:2, 0] = np.asarray(step, float).reshape(2) * (c * sd / math.log(10.0))
+            g[:2, 0] = kept * (c * sd / math.log(10.0))
             L = tria(np.hstack([self._L, g]))
             self._commit(self._tau, 0.0, self._x, L, self._x, L, self._noise_sqrt(0.0), "move")
-        return kept
+        return n
 
     def measure(self, t: float, z, R=None, *, label: str | None = None) -> Measurement:
         """Fold one measured offset ``z`` (nm, (2,)) at ``t`` into the estimate, unless the

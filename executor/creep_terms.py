@@ -12,7 +12,11 @@ error through it.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from nanoasm.drift.creep import creep_moves
 
 
 def amplitude_error(est) -> tuple[float, float]:
@@ -63,21 +67,17 @@ def with_creep(est, z, static, creep_sens):
     return np.asarray(z, float) + float(est.filter.x[-1]) * sens, static
 
 
-def final_travel(dac, config):
-    """Where and when a streamed path's last travel before its push ends: ``(t, xy)``
-    (instrument s, nm), or None when it has none."""
-    from .trajectory import PUSH, TRAVEL
-
-    prof = dac.profile
-    travel = np.flatnonzero(prof.kind == TRAVEL)
-    push = np.flatnonzero(prof.kind == PUSH)
-    travel = travel[travel < push[0]] if push.size else travel
-    if not travel.size:
-        return None
-    k = int(prof.ends[travel[-1]])
-    if k < 1:
-        return None
-    return dac.t0 + k / config.sample_rate, dac.render(np.array([k])).nm[0, :2]
+def steps_along(est, anchor, xy, t, rests):
+    """The moves ``est``'s creep model records of a motion through ``xy`` ((n, 2) nm) at
+    ``t`` from ``anchor`` (:func:`~nanoasm.drift.creep.creep_moves`, at least
+    ``MIN_PIECE_TIME`` after its last move): their indices and steps (nm)."""
+    creep = est.filter.params.creep
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    if creep.amplitude == 0.0 or not len(xy):
+        return np.zeros(0, np.int64), np.zeros((0, 2))
+    last = est.move_log[-1][0] if est.move_log else -math.inf
+    ks = creep_moves(anchor, xy, t, creep.min_step, last, rests)
+    return ks, np.diff(np.vstack([np.asarray(anchor, float).reshape(1, 2), xy[ks]]), axis=0)
 
 
-__all__ = ["amplitude_error", "compensation", "final_travel", "tau_spread", "with_creep"]
+__all__ = ["amplitude_error", "compensation", "steps_along", "tau_spread", "with_creep"]

@@ -28,6 +28,7 @@ from .reference_choice import Candidate, best, object_candidates
 from .references import References
 from .scan_drift import ScanDrift
 from .strategy import ExecOptions
+from .trajectory import rests_of
 from .trust import Trust
 
 #: Variance (nm² per axis) of an object's position in the first full scan, its row's
@@ -331,16 +332,31 @@ class Kalman:
             self.filter.record_move(t, step)
             self.creep_anchor = xy
 
-    def pending_travel(self, dac, current, config) -> list:
-        """The move a streamed path's own travel will be recorded as: ``[(t_end, step)]``,
-        or ``[]`` if it is too short to creep."""
-        end = creep_terms.final_travel(dac, config)
-        if end is None:
+    def moved_along(self, xy, t, start=None, rests=()) -> None:
+        """The scanner went through the points ``xy`` ((n, 2) nm) at times ``t`` ((n,) s),
+        coming to rest at the indices ``rests``: the moves the instrument's creep follows
+        (:func:`~nanoasm.drift.creep.creep_moves`: pieces as it goes, and ends where it
+        stops) are recorded, each creeping from its own time."""
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        if self.creep_anchor is None and len(xy):
+            self.creep_anchor = np.asarray(xy[0] if start is None else start, float)
+        ks, steps = creep_terms.steps_along(self, self.creep_anchor, xy, t, rests)
+        if ks.size:
+            times = np.maximum.accumulate(np.maximum(np.asarray(t, float).reshape(-1)[ks], self.filter.time))
+            self.move_log.extend(zip(times.tolist(), steps))
+            self.filter.record_moves(times, steps)
+            self.creep_anchor = xy[ks[-1]].copy()
+
+    def pending_moves(self, dac, current, config) -> list:
+        """The moves a streamed path will be recorded as (:meth:`moved_along`),
+        ``[(t, step), ...]``; XY rests where the travel and the push end."""
+        if not dac.n_samples:
             return []
-        anchor = (self.creep_anchor if self.creep_anchor is not None
-                  else config.codes_to_nm(np.asarray(current))[:2])
-        step = end[1] - anchor
-        return [] if math.hypot(*step) < self.filter.params.creep.min_step else [(end[0], step)]
+        anchor = self.creep_anchor if self.creep_anchor is not None else config.codes_to_nm(np.asarray(current))[:2]
+        samples = dac.render(np.arange(1, dac.n_samples + 1))
+        ks, steps = creep_terms.steps_along(self, anchor, samples.nm[:, :2], samples.t,
+                                            rests_of(samples.kind, last=True))
+        return [(float(samples.t[k]), step) for k, step in zip(ks, steps)]
 
     def creep_scale(self) -> float:
         """The creep amplitude as learnt over the nominal one, ``(c + δc) / c``."""

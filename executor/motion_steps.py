@@ -23,7 +23,7 @@ from .dac import plan_dac
 from .progress_docs import PROGRESS, ProgressDoc
 from .engine import Msg
 from .monitor import PushMonitor
-from .trajectory import PUSH, TRAVEL, operation
+from .trajectory import PUSH, TRAVEL, operation, rests_of
 
 #: A scan line starting farther than this (nm) from the tip is preceded by a travel.
 APPROACH = 300.0
@@ -44,7 +44,7 @@ def travel_to(ctx: RunContext, xy):
     if len(path):
         block = yield Msg("write", (path,))
         ctx.ledger.times["travel"] += len(block) / cfg.sample_rate
-        _moved(ctx, here, there, float(block.t[-1]))
+        _moved(ctx, here, path, block.t, [len(path) - 1])
 
 
 def approach(ctx: RunContext, xy):
@@ -71,11 +71,13 @@ def lift(ctx: RunContext):
         ctx.ledger.times["travel"] += len(block) / cfg.sample_rate
 
 
-def _moved(ctx: RunContext, start_codes, end_codes, t: float) -> None:
-    """Tell the drift estimator about a scanner move from ``start_codes`` finished at ``t``."""
+def _moved(ctx: RunContext, start_codes, codes, t, rests) -> None:
+    """Tell the drift estimator about the scanner's motion from ``start_codes`` (where the
+    path began) through the samples ``codes`` played at ``t``, at rest at the indices
+    ``rests``: creep follows its pieces as it goes, and its ends where XY stops."""
     cfg = ctx.config
-    ctx.drift.moved_to(cfg.codes_to_nm(np.asarray(end_codes))[:2], t,
-                       start=cfg.codes_to_nm(np.asarray(start_codes))[:2])
+    ctx.drift.moved_along(cfg.codes_to_nm(np.asarray(codes))[:, :2], t,
+                          start=cfg.codes_to_nm(np.asarray(start_codes))[:2], rests=rests)
 
 
 def dac_doc(ctx: RunContext, codes, kind, block, every: int = DAC_LOG_EVERY) -> dict:
@@ -103,23 +105,19 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     t0 = yield Msg("clock")
     moves = operation(op.tip_path, push_speed=ctx.options.push_speed)
     dac = plan_dac(moves, cfg, current, t0=t0, drift=ctx.drift.predicted(t0), lever=lever)
-    pending = ctx.drift.pending_travel(dac, current, ctx.config)
-    if pending:     # the travel to the push creeps while the push runs: follow it
+    pending = ctx.drift.pending_moves(dac, current, ctx.config)
+    if pending:     # the path creeps as it goes (its travel, then the push): follow it
         dac = plan_dac(moves, cfg, current, t0=t0, drift=ctx.drift.predicted(t0, pending), lever=lever)
     monitor = PushMonitor(cfg.preload, lever=lever, force_limit=ctx.options.force_limit, baselines=ctx.baselines,
                           friction=ctx.options.substrate_friction)
     verdict = None
     kept = None if lead is None else PushSignals(lead)
     n_push = n_other = 0
-    ends = {TRAVEL: None, PUSH: None}
+    # creep follows the path in pieces as it goes, and its moves end where XY rests
+    rests = rests_of(dac.profile.sample(np.arange(1, dac.n_samples + 1))[1], last=True) + 1
     for chunk in dac.chunks(ctx.options.chunk):
         block = yield Msg("write", (chunk.codes,))
         yield Msg("emit", ("dac", dac_doc(ctx, chunk.codes, chunk.kind, block)))
-        # creep follows the travel and the push as two moves, each ended where XY stops
-        for kind in ends:
-            idx = np.flatnonzero(chunk.kind == kind)
-            if idx.size:
-                ends[kind] = (chunk.codes[idx[-1]], float(block.t[idx[-1]]))
         lifted = chunk.kind == TRAVEL                              # travel: free air
         if lifted.any() and not monitor.in_contact:
             monitor.set_baseline(block.s_n[lifted], block.s_l[lifted])
@@ -131,15 +129,14 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
             kept.add(block.s_n, block.s_l, xy, pushing, lifted)
         if pushing.any():
             v = monitor.check(block.s_n[pushing], block.s_l[pushing], xy[pushing])
-            if v.failed:
-                verdict = v
-                break
+            verdict = v if v.failed else None
+        here = rests[(rests >= chunk.first) & (rests < chunk.first + len(chunk))] - chunk.first
+        _moved(ctx, current, chunk.codes, block.t, here if verdict is None else np.append(here, len(chunk) - 1))
+        if verdict is not None:         # stopped here: lifted where it is
+            break
     # what the instrument took beyond the samples streamed: the approach into contact
     t_end = yield Msg("clock")
     ctx.ledger.times["mode_switch"] += max(t_end - t0 - (n_push + n_other) / cfg.sample_rate, 0.0)
-    for end in ends.values():
-        if end is not None:
-            _moved(ctx, current, *end)
     if verdict is None:
         verdict = monitor.finish()
     path = np.asarray(op.tip_path, float)

@@ -32,6 +32,16 @@ SEGMENT_KINDS = ("travel", "lower", "push", "lift")
 TRAVEL, LOWER, PUSH, LIFT = range(4)
 
 
+def rests_of(kind, last: bool = False) -> np.ndarray:
+    """Indices of the samples of kinds ``kind`` ((n,) ints) where XY comes to rest: the
+    last of a travel or a push (the tip is lowered or lifted there), and with ``last`` the
+    path's last sample."""
+    kind = np.asarray(kind).reshape(-1)
+    moving = (kind == TRAVEL) | (kind == PUSH)
+    out = np.flatnonzero(moving[:-1] & (kind[1:] != kind[:-1]))
+    return np.append(out, len(kind) - 1) if last and len(kind) else out
+
+
 @dataclass(frozen=True, eq=False)
 class Move:
     """One tip move: a polyline in the layout frame.

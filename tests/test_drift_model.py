@@ -139,29 +139,53 @@ def test_a_move_and_its_return_creep_away():
     assert np.all(np.diff(cx) < 0) and cx[-1] < 0.05 * cx[0]
 
 
-def test_a_move_that_ends_with_its_chunk_creeps_from_when_xy_stopped():
-    """A streamed travel that ends with its chunk, then a pause (a 2 s mode switch) before
-    a scan line elsewhere: the travel is recorded where XY stopped, ``stop_samples`` after,
-    not when the instrument acted again; a chunk that goes on without a pause ends no move."""
+def test_a_motion_creeps_as_it_goes_in_pieces():
+    """A streamed motion is recorded in pieces as it goes: at every ``min_step`` of
+    displacement from where the last recorded move ended, at least ``MIN_PIECE_TIME``
+    after it, each at its own sample. A push of seconds (or legs in a row without a rest)
+    creeps during itself, not from its end. What is left when XY stops ends a move there,
+    ``stop_samples`` after, if it is ``min_step`` long (else it is carried on)."""
+    from nanoasm.drift.creep import MIN_PIECE_TIME
     from nanoasm.world.sim.stream import MoveTracker
 
     m = still(min_step=100.0)
     tracker = MoveTracker(m, np.zeros(2), stop_samples=50)
-    n, rate = 200, 1000.0
+    n, rate = 200, 1000.0                              # 10 m/s: 100 nm in 10 ms
     nm = np.column_stack([np.linspace(10.0, 2000.0, n), np.zeros(n), np.zeros(n)])
     codes = np.round(nm * 10).astype(np.int64)
     t = 1.0 + np.arange(1, n + 1) / rate
     tracker.track(nm, codes, np.zeros(3, np.int64), t)
-    assert m._moves_t == []                        # still moving when the chunk ended
-    more = np.column_stack([np.linspace(2010.0, 2500.0, 50), np.zeros(50), np.zeros(50)])
-    tracker.track(more, np.round(more * 10).astype(np.int64), codes[-1], t[-1] + np.arange(1, 51) / rate)
-    assert m._moves_t == []                        # no pause: the same move goes on
-    t_end = t[-1] + 50 / rate
-    tracker.jump(t_end + 2.0, np.array([2500.0, 600.0]))
-    assert m._moves_t[0] == pytest.approx(t_end + 50 / rate)
-    np.testing.assert_allclose(m._moves_s[0], (2500.0, 0.0))
-    assert m._moves_t[1] == pytest.approx(t_end + 2.0)   # then the jump to the line, now
-    np.testing.assert_allclose(m._moves_s[1], (0.0, 600.0))
+    assert MIN_PIECE_TIME == 0.05
+    assert m._moves_t == pytest.approx([1.010, 1.060, 1.110, 1.160])   # at 100 nm, then 50 ms apart
+    np.testing.assert_allclose(m._moves_s, [(100.0, 0.0), (500.0, 0.0), (500.0, 0.0), (500.0, 0.0)])
+    more = np.column_stack([np.linspace(2010.0, 2550.0, 55), np.zeros(55), np.zeros(55)])
+    t_more = t[-1] + np.arange(1, 56) / rate
+    tracker.track(more, np.round(more * 10).astype(np.int64), codes[-1], t_more)
+    assert m._moves_t[-1] == pytest.approx(1.210) and m._moves_s[-1] == pytest.approx((500.0, 0.0))
+    assert m.creep(t_more[-1])[0] > m.creep(t[-1])[0] > 0.0        # crept while it went on
+    tracker.jump(t_more[-1] + 2.0, np.array([2550.0, 600.0]))      # a pause, then a scan line elsewhere
+    assert m._moves_t[-2:] == pytest.approx([t_more[-1] + 50 / rate, t_more[-1] + 2.0])
+    np.testing.assert_allclose(m._moves_s[-2:], [(450.0, 0.0), (0.0, 600.0)])   # ended where XY stopped
+
+
+def test_creep_moves_of_a_slow_push_every_min_step_and_where_it_rests():
+    """At a push's speed the pieces are ``min_step`` apart; none before ``MIN_PIECE_TIME``
+    after the last recorded move; a path that never gets ``min_step`` away has none; a
+    rest ends a move if it is ``min_step`` from the last one."""
+    from nanoasm.drift.creep import creep_moves
+
+    t = np.arange(1, 20001) / 1000.0                 # 20 s at 200 nm/s: 4 µm
+    xy = np.column_stack([200.0 * t, np.zeros_like(t)])
+    ks = creep_moves((0.0, 0.0), xy, t, 500.0)
+    np.testing.assert_allclose(xy[ks, 0], [500.0, 1000.0, 1500.0, 2000.0, 2500.0, 3000.0, 3500.0, 4000.0])
+    assert creep_moves((0.0, 0.0), xy, t, 500.0, last=10.0)[0] == np.searchsorted(t, 10.05)
+    back = np.column_stack([400.0 * np.sin(t), np.zeros_like(t)])
+    assert creep_moves((0.0, 0.0), back, t, 500.0).size == 0
+    # a fast travel (20 µm/s) is cut every MIN_PIECE_TIME; XY at rest 700 nm after the
+    # first piece ends a move there (sample 60), 100 nm after a piece does not (sample 120)
+    fast = np.column_stack([20.0 * np.arange(1, 201), np.zeros(200)])
+    ks = creep_moves((0.0, 0.0), fast, np.arange(1, 201) / 1000.0, 500.0, rests=[59, 119])
+    np.testing.assert_allclose(fast[ks, 0], [500.0, 1200.0, 2200.0, 3200.0])
 
 
 def test_bad_queries_are_refused():

@@ -249,7 +249,13 @@ def test_travel_is_timed_as_travel_and_told_to_the_creep_model():
     ctx, fake = _ctx()
     drive(travel_to(ctx, (47000.0, 45000.0)), fake)
     assert ctx.ledger.times["travel"] == pytest.approx(fake.t)
-    assert ctx.drift.move_log and ctx.drift.move_log[-1][1][0] == pytest.approx(2000.0, abs=2.0)
+    # creep follows the travel (40 ms) as it goes, a piece once min_step is reached, and
+    # the rest where it ends
+    steps = np.array([s for _, s in ctx.drift.move_log])
+    times = [t for t, _ in ctx.drift.move_log]
+    assert len(steps) == 2 and ctx.drift.params.creep.min_step <= steps[0, 0] < 600.0
+    assert steps[:, 0].sum() == pytest.approx(2000.0, abs=2.0) and np.allclose(steps[:, 1], 0.0)
+    assert times[0] < times[1] == pytest.approx(fake.t, abs=2e-3)
 
 
 def test_a_scan_line_beyond_the_range_reads_bare_substrate_there():

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from simkit import particle, push, world
+from simkit import EXACT, particle, push, world
 
 from nanoasm.executor.belief import Belief
 from nanoasm.executor.context import RunContext
@@ -101,3 +101,32 @@ def test_legs_located_by_their_contact_angle_take_one_line_and_land_as_well(erro
     assert n_line == legs_line - 1 and n <= 2
     assert t < 0.6 * t_line
     assert math.dist(b.at, (4000.0, 2000.0)) < 5.0 and abs(b.at[1] - 2000.0) < 5.0
+
+
+def test_legs_in_a_row_creep_as_the_drift_estimate_says():
+    """A 5 µm push in legs one after another (contact angles between them), the scanner
+    creeping by its nominal law and the drift estimate following the moves it streams:
+    the particle lands within 5 nm. The instrument once counted legs in a row as one move
+    made at their end, the estimate each leg as its own: the particle then came to rest
+    10 nm short, some 1.2 nm a leg (and 11 nm a leg on the wide family's longer legs)."""
+    from dataclasses import replace
+
+    from nanoasm.executor.kalman_drift import Kalman
+    from nanoasm.world.params import CreepParams, DriftParams
+
+    params = replace(EXACT, creep=CreepParams(amplitude=0.01, tau=0.1, min_step=500.0),
+                     drift=DriftParams(velocity=(0.0, 0.0), random_walk=0.0))
+    x, y = 43000.0, 45000.0             # near the scanner's rest: the travel there creeps little
+    sim = world([particle((x + 1000, y), d=90.0)], params=params, area=(50000.0, 50000.0))
+    sim._world.table.path_error[0] = 1.0
+    options = ExecOptions(strategy="full", between_legs="contact")
+    est = Kalman((0.0, 0.0), sim.clock(), options)
+    est.full_scan_done()
+    est.restart(sim.clock())
+    env = Environment((50000.0, 50000.0), (EnvObject("p1", "particle", (x + 1000.0, y), 90.0),), ())
+    ctx = RunContext(sim.config, options, est, Belief(env, 0.0), References())
+    op = Operation(1, "p1", None, ((x + 940.0, y), (x + 5945.0, y)), Expect((x + 6000.0, y), None))
+    verdict, legs, _ = RunEngine(sim, []).run(push_in_legs(ctx, op, ctx.belief["p1"], SEED_LEVER, 1.0, 10.0, 20.0))
+    (b,) = sim.truth()
+    assert not verdict.failed and legs >= 5
+    assert math.dist(b.at, (x + 6000.0, y)) < 5.0

@@ -90,9 +90,9 @@ def _played(sim: SimulatedAFM, codes: np.ndarray):
 
 def test_a_round_trip_through_json_is_exact():
     sim = _busy_world()
-    sim.full_scan(64)
-    sim.write(_push_codes(sim, (1700, 2000), (2300, 2000)))
-    sim.write(_push_codes(sim, (1500, 2400), (1500, 2900)))
+    off = _settled(sim, (2000.0, 2000.0))
+    sim.write(_push_codes(sim, np.array((1700.0, 2000.0)) + off, np.array((2300.0, 2000.0)) + off))
+    sim.write(_push_codes(sim, np.array((1500.0, 2400.0)) + off, np.array((1500.0, 2900.0)) + off))
     sim.scan_line((1000.0, 1000.0), (3000.0, 1000.0), 64)      # a move the creep records
     state = sim.state_dict()
     text = _json(state)
@@ -136,7 +136,9 @@ def test_a_world_restored_mid_push_goes_on_bit_for_bit():
 
 def _bowtie_state():
     sim = _busy_world()
-    sim.write(_push_codes(sim, (1700, 2000), (1990, 2000), lift=False))   # a push in progress
+    off = _settled(sim, (2000.0, 2000.0))
+    sim.write(_push_codes(sim, np.array((1700.0, 2000.0)) + off, np.array((1990.0, 2000.0)) + off,
+                          lift=False))                                   # a push in progress
     return sim, sim.state_dict()
 
 

@@ -51,17 +51,25 @@ def test_a_large_move_makes_the_sample_creep():
         params = dataclasses.replace(EXACT, drift=DriftParams(velocity=(0.0, 0.0), random_walk=0.0),
                                      creep=CreepParams(amplitude=amplitude))
         sim = world([particle((2000, 45000), d=50)], area=(50000.0, 50000.0), params=params)
+        t0 = sim.clock()
         sim.write(path_codes(sim, [(2000, 45000, sim.config.lift)]))   # from rest: a 43 µm step in -x
+        t_end = sim.clock()
         sim.write(np.repeat(sim.position()[None, :], 100, axis=0))      # and a stop
         line = ((1700.0, 45000.0), (2300.0, 45000.0))
+        t1 = sim.clock()
         first = _peak(sim.scan_line(*line, 601), 1700.0)
         sim.full_scan(64, (0.0, 0.0, 1000.0, 1000.0))                    # 64 s later
-        return first, _peak(sim.scan_line(*line, 601), 1700.0)
-    assert seen(0.0) == pytest.approx((2000.0, 2000.0), abs=1.5)
-    first, second = seen(0.001)
-    # the piezo keeps extending along the step (-x): the sample appears moved by +γ|s| log10(1 + t/τ)
-    assert 0.0 <= first - 2000.0 < 15.0
-    assert 43.0 * (math.log10(1 + 64 / 0.1) - 0.5) < second - first < 43.0 * math.log10(1 + 66 / 0.1)
+        t2 = sim.clock()
+        return first, _peak(sim.scan_line(*line, 601), 1700.0), (t0, t_end, t1, t2)
+    assert seen(0.0)[:2] == pytest.approx((2000.0, 2000.0), abs=1.5)
+    first, second, (t0, t_end, t1, t2) = seen(0.001)
+    # the piezo keeps extending along the step (-x): the sample appears moved by
+    # γ Σ |s_i| log10(1 + (t - t_i)/τ), the step's pieces creeping from when they were
+    # made, some time t_i between the travel's start and end (0.86 s at 50 µm/s)
+    lo, hi = (43.0 * math.log10(1 + (t1 - t_end) / 0.1), 43.0 * math.log10(1 + (t1 - t0) / 0.1))
+    assert lo + 10.0 < first - 2000.0 < hi          # well beyond the step made at its end: crept as it went
+    gain = [43.0 * math.log10((0.1 + t2 - ti) / (0.1 + t1 - ti)) for ti in (t0, t_end)]
+    assert gain[0] - 2.0 < second - first < gain[1] + 2.0
 
 
 def _peak(z, x0):

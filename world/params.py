@@ -245,8 +245,9 @@ class CreepParams:
                              source="typical open-loop piezo tubes 0.01-0.03; seed 3.7 defers to its "
                              "ref. [50]", nonnegative=True, hi=0.5)
     tau: float = param(0.1, "s", "time constant τ", source="typical t0 = 0.1 s", positive=True)
-    min_step: float = param(500.0, "nm", "smaller moves add no creep term", source="model economy",
-                            nonnegative=True)
+    min_step: float = param(500.0, "nm", "smaller moves add no creep term (carried into the next); a "
+                            "motion creeps in pieces this long (at least 100 nm) as it goes",
+                            source="model economy", nonnegative=True)
 
     def __post_init__(self) -> None:
         validate(self)

@@ -76,6 +76,14 @@ class PlacedDrift:
         dx, dy = self.drift.offset(t)
         return dx + self.placement[0], dy + self.placement[1]
 
+    @property
+    def creep_params(self):
+        return self.drift.creep_params
+
+    @property
+    def last_move(self) -> float:
+        return self.drift.last_move
+
     def record_move(self, t: float, dx: float, dy: float) -> bool:
         return self.drift.record_move(t, dx, dy)
 
@@ -153,6 +161,7 @@ class SimulatedAFM(SimulatedInstrument):
             self._clock.mode_switch(activity or "push")
             self._mode = CONTACT
         t = self._clock.now + np.arange(1, n + 1) / cfg.sample_rate
+        self._moves.track(nm, codes, self._last, t)     # each move creeps from its own sample
         off = np.stack(self._drift.offset(t), axis=-1)
         played = play_chunk(self._world, self._model, nm, off, self._state, cfg.max_step)
         sn_bar, sl_bar = self._model.bar_signals(played.force, played.deflection)
@@ -163,7 +172,6 @@ class SimulatedAFM(SimulatedInstrument):
             self._clock.samples(n - n_contact, cfg.sample_rate, "travel")
         else:
             self._clock.samples(n, cfg.sample_rate, activity)
-        self._moves.track(nm, codes, self._last, t)
         self._last = codes[-1].copy()
         self._signals = (float(s_n[-1]), float(s_l[-1]))
         return SignalBlock(t, s_n, s_l)

@@ -202,6 +202,11 @@ class DriftModel:
         self._sum.add(float(t), (float(dx), float(dy)))
         return True
 
+    @property
+    def last_move(self) -> float:
+        """Time (s) of the last recorded move (-inf before the first)."""
+        return self._moves_t[-1] if self._moves_t else -math.inf
+
     def set_moves(self, times, steps) -> None:
         """Replace the recorded moves (a restored state): times (s) and steps (nm) in order."""
         self._moves_t = [float(v) for v in times]

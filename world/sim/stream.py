@@ -22,6 +22,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nanoasm.drift.creep import creep_moves
+
 from .drift_model import DriftModel
 from .push import PushPhysics
 from .signals import SignalModel, twist_deg
@@ -183,11 +185,18 @@ def _rotation_row(psi: float) -> tuple[float, float]:
 
 
 class MoveTracker:
-    """Registers the scanner's completed XY moves with the creep model.
+    """Registers the scanner's XY moves with the creep model.
 
-    A move ends when XY stays on one DAC code for ``stop_samples`` samples (a slow push,
-    whose code changes every few samples, stays one move); it is recorded at that sample
-    as the step from where the last *recorded* move ended. A move shorter than
+    While XY moves, every ``max(min_step, MIN_PIECE)`` of displacement from where the
+    last recorded move ended (at least ``MIN_PIECE_TIME`` after it) is recorded as a move
+    at the sample that reaches it
+    (:func:`nanoasm.drift.creep.creep_moves`): creep is linear in the step, so a motion
+    creeps as the superposition of its pieces, each from its own time, and a slow push
+    of many seconds (or legs one after another) creeps as it goes rather than from its end.
+    The moves of a chunk are recorded before it is played, so a piece creeps from its own
+    sample on. A move also ends when XY stays on one DAC code for ``stop_samples``
+    samples; it is recorded at that sample as the step from where the last *recorded*
+    move ended. A move shorter than
     ``[creep] min_step`` is not recorded and does not restart the chain: its
     displacement is carried into the next move, so every displacement creeps (creep is
     linear in the step) and only its attribution time is coarsened.
@@ -224,13 +233,17 @@ class MoveTracker:
             self._end(t_end, xy)
             self.still = self.stop
 
-    def _end(self, t: float, xy: np.ndarray) -> None:
+    def _end(self, t: float, xy: np.ndarray) -> bool:
         d = xy - self.start
         if self.drift.record_move(t, float(d[0]), float(d[1])):
             self.start = xy.copy()
+            return True
+        return False
 
     def track(self, nm: np.ndarray, codes: np.ndarray, previous: np.ndarray, t: np.ndarray) -> None:
-        """Samples ``codes`` (their nm ``nm`` and times ``t``) played after ``previous``."""
+        """Samples ``codes`` (their nm ``nm`` and times ``t``) about to be played after
+        ``previous``: the moves they make are recorded before they are played, so each
+        creeps from its own sample on (:func:`nanoasm.drift.creep.creep_moves`)."""
         period = float(t[1] - t[0]) if t.size > 1 else (self.rest[1] if self.rest is not None else 0.0)
         if period > 0.0:
             self._settle(float(t[0]) - period)
@@ -239,8 +252,11 @@ class MoveTracker:
         idx = np.arange(still.size)
         last_move = np.maximum.accumulate(np.where(still, -1, idx))
         count = np.where(last_move >= 0, idx - last_move, idx + 1 + self.still)
-        for k in np.flatnonzero(count == self.stop):
-            self._end(float(t[k]), nm[k, :2])
+        if self.drift.creep_params.amplitude > 0:
+            rests = np.flatnonzero(count == self.stop)
+            for k in creep_moves(self.start, nm[:, :2], t, self.drift.creep_params.min_step,
+                                 self.drift.last_move, rests):
+                self._end(float(t[k]), nm[k, :2])
         self.still = int(count[-1])
         if period > 0.0:
             self.rest = (float(t[-1]), period, nm[-1, :2].copy())
