@@ -14,14 +14,17 @@ assigned).
 
     python bench/bench_pushes.py                      # -> bench/RESULTS_pushes.md
     python bench/bench_pushes.py --families allpushed --seeds 1-3 --out /tmp/x.md
+    python bench/bench_pushes.py --between-legs line  # a line across between legs
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 import statistics
 import sys
 import time
+from functools import partial
 
 from bench_drift_refs import _fmt, family_sweep, provenance
 
@@ -30,7 +33,7 @@ BINS = ((0.0, 300.0, "< 300 nm"), (300.0, 1000.0, "300-1000 nm"), (1000.0, 2000.
         (2000.0, math.inf, "> 2 µm"))
 
 
-def one_run(args: tuple[str, int]) -> dict:
+def one_run(args: tuple[str, int], between_legs: str | None = None) -> dict:
     from nanoasm.dryrun import dry_run
     from nanoasm.executor.strategy import ExecOptions
     from nanoasm.world.families import family_case
@@ -38,7 +41,8 @@ def one_run(args: tuple[str, int]) -> dict:
     name, seed = args
     scene, layout = family_case(name, seed)
     w0 = time.perf_counter()
-    out = dry_run(scene, layout, options=ExecOptions(strategy="full"))
+    legs = {} if between_legs is None else {"between_legs": between_legs}
+    out = dry_run(scene, layout, options=ExecOptions(strategy="full", **legs))
     rep = out.report
     tol = layout.tolerance.position
     pushed = set(rep.pushed) | {a.object for a in rep.assignment}
@@ -108,8 +112,13 @@ def report(rows: list[dict], argv: list[str], seconds: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    return family_sweep(__doc__, FAMILIES, "RESULTS_pushes.md", one_run, report,
-                        sys.argv[1:] if argv is None else argv)
+    argv = sys.argv[1:] if argv is None else argv
+    ap = argparse.ArgumentParser(add_help=False)
+    ap.add_argument("--between-legs", choices=("line", "contact"), default=None,
+                    help="how a long push's particle is located between legs (default: ExecOptions')")
+    known, rest = ap.parse_known_args(argv)
+    return family_sweep(__doc__, FAMILIES, "RESULTS_pushes.md", partial(one_run, between_legs=known.between_legs),
+                        report, rest)
 
 
 if __name__ == "__main__":

@@ -17,7 +17,7 @@ distance ``(R + r_tip) sin α_c / tan e`` came within 2 % of where the particle 
 dropped (``tests/test_push_legs.py``). Once a leg has measured the particle's own turn
 ``e``, the legs are cut to ``ℓ |tan e| + 3 √(σ_lat² + (ℓ tan 1°)²) ≤ (R + r_tip) sin α_c``.
 
-Between legs, with ``between_legs = "contact"`` (not the default), the lateral coordinate comes from
+Between legs, with ``between_legs = "contact"`` (the default), the lateral coordinate comes from
 the leg's own forces when they tell it well enough: the contact angle at the leg's end (:mod:`.contact_angle`) puts the
 particle at ``r_c`` from the tip's end along the contact normal, to within
 :data:`CONTACT_STD` nm (1σ). Before the last leg, and otherwise, a single scan line across the push (sequential

@@ -98,11 +98,11 @@ class ExecOptions:
         particle, degrees.
     between_legs : {"line", "contact"}
         How a long push's particle is located between its legs: a line across, or
-        (``"contact"``) the leg's contact angle (:mod:`.contact_angle`), a line only
-        before the last leg. ``"line"`` by default: ``"contact"`` is faster (allpushed
-        42 -> 33 s per filled slot) but on pushes of 4 µm and more, with creep, the
-        particle falls behind the tip's line by some 11 nm a leg until the tip lands on
-        it (``bench/RESULTS_pushes.md``).
+        (``"contact"``, the default) the leg's contact angle (:mod:`.contact_angle`), a
+        line only before the last leg and where the angle is too uncertain. ``"contact"``
+        takes 20-36 % less instrument time per filled slot on the families of long pushes
+        (allpushed 41.3 -> 32.9 s, wide 70.5 -> 45.0 s) and fills as many slots
+        (``bench/RESULTS_pushes.md``).
     drift_q : float
         Process noise of the drift filter: random walk of the drift velocity, nm²/s³.
     drift_q_offset : float
@@ -169,7 +169,7 @@ class ExecOptions:
                                     positive=True, hi=45.0)
     capture_angle: float = param(45.0, "deg", "half-angle of the cone within which the tip carries a particle",
                                  positive=True, hi=90.0)
-    between_legs: str = param("line", "-", "how a particle is located between a push's legs",
+    between_legs: str = param("contact", "-", "how a particle is located between a push's legs",
                               choices=("line", "contact"))
     drift_q: float = param(1e-6, "nm²/s³", "random walk of the drift velocity", nonnegative=True)
     drift_q_offset: float = param(0.1, "nm²/s", "white noise on the drift offset", nonnegative=True)

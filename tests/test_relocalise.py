@@ -72,25 +72,27 @@ def _allpushed_jump(seed: int, at: float):
 
 
 def test_an_object_pushed_while_the_drift_jumped_is_looked_for_where_the_correction_puts_it():
-    """allpushed seed 1, the jump 300 s into the pushes: it strikes while o8 is pushed, whose
-    after-scan then puts it 300 nm off in the layout frame with the estimate of before; it
+    """allpushed seed 5, the jump at 750 s, during the pushes: o7, pushed while it struck,
     was seen after the estimate was last confirmed and before the first reference that
-    failed, so the relocalisation looks for it where the correction puts it (before:
-    o8 was taken for o4 by a lost search, lost, and its slot left unfilled)."""
-    out, layout, events = _allpushed_jump(1, 900.0)
+    failed (o7 itself, then the edge c2), so the relocalisation (-64, -291 nm) looks for it
+    where the correction puts it and, not finding it there, where the old estimate put it,
+    and finds it. (Seed 1 at 900 s before contact legs made the runs shorter; before this
+    check o8 was taken for o4 by a lost search there, lost, and its slot left unfilled.)"""
+    out, layout, events = _allpushed_jump(5, 750.0)
     assert any(t.startswith("relocalised by window") for t in events.texts), events.texts
     assert any("seen while the drift jumped" in t for t in events.texts), events.texts
     assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
 
 
 def test_a_drift_jump_during_the_check_scans_does_not_falsify_the_verdict():
-    """allpushed seed 6, the jump at 913.5 s while the run scans its slots for the verdict
-    (912-920 s since the tip force follows the contact normal; 918-925 s before that, 900 s
-    before dry-runs compensated with a calibrated, drawn lever)
+    """allpushed seed 6, the jump at 845.8 s while the run scans its slots for the verdict
+    (844-852 s since contact legs and creep that follows the legs; 912-920 s since the tip
+    force follows the contact normal; 918-925 s before that, 900 s before dry-runs
+    compensated with a calibrated, drawn lever)
     (before: 1 of 9 filled by its own account, 8 in truth): the first slot missed sets
     off a reference, that fails too, the estimate is relocalised and every slot scanned
     again."""
-    out, layout, events = _allpushed_jump(6, 913.5)
+    out, layout, events = _allpushed_jump(6, 845.8)
     assert any("scanned again" in t for t in events.texts), events.texts
     # a slot whose assigned object the check scan did not find says why
     assert any(t.startswith("slot ") and "the check scan did not find" in t for t in events.texts), events.texts
