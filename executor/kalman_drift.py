@@ -28,7 +28,6 @@ from .reference_choice import Candidate, best, object_candidates
 from .references import References
 from .scan_drift import ScanDrift
 from .strategy import ExecOptions
-from .trajectory import rests_of
 from .trust import Trust
 
 #: Variance (nm² per axis) of an object's position in the first full scan, its row's
@@ -355,7 +354,7 @@ class Kalman:
         anchor = self.creep_anchor if self.creep_anchor is not None else config.codes_to_nm(np.asarray(current))[:2]
         samples = dac.render(np.arange(1, dac.n_samples + 1))
         ks, steps = creep_terms.steps_along(self, anchor, samples.nm[:, :2], samples.t,
-                                            rests_of(samples.kind, last=True))
+                                            dac.profile.rests() - 1)
         return [(float(samples.t[k]), step) for k, step in zip(ks, steps)]
 
     def creep_scale(self) -> float:

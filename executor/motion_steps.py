@@ -23,7 +23,7 @@ from .dac import plan_dac
 from .progress_docs import PROGRESS, ProgressDoc
 from .engine import Msg
 from .monitor import PushMonitor
-from .trajectory import PUSH, TRAVEL, operation, rests_of
+from .trajectory import PUSH, TRAVEL, operation
 
 #: A scan line starting farther than this (nm) from the tip is preceded by a travel.
 APPROACH = 300.0
@@ -114,7 +114,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     kept = None if lead is None else PushSignals(lead)
     n_push = n_other = 0
     # creep follows the path in pieces as it goes, and its moves end where XY rests
-    rests = rests_of(dac.profile.sample(np.arange(1, dac.n_samples + 1))[1], last=True) + 1
+    rests = dac.profile.rests()
     for chunk in dac.chunks(ctx.options.chunk):
         block = yield Msg("write", (chunk.codes,))
         yield Msg("emit", ("dac", dac_doc(ctx, chunk.codes, chunk.kind, block)))

@@ -32,16 +32,6 @@ SEGMENT_KINDS = ("travel", "lower", "push", "lift")
 TRAVEL, LOWER, PUSH, LIFT = range(4)
 
 
-def rests_of(kind, last: bool = False) -> np.ndarray:
-    """Indices of the samples of kinds ``kind`` ((n,) ints) where XY comes to rest: the
-    last of a travel or a push (the tip is lowered or lifted there), and with ``last`` the
-    path's last sample."""
-    kind = np.asarray(kind).reshape(-1)
-    moving = (kind == TRAVEL) | (kind == PUSH)
-    out = np.flatnonzero(moving[:-1] & (kind[1:] != kind[:-1]))
-    return np.append(out, len(kind) - 1) if last and len(kind) else out
-
-
 @dataclass(frozen=True, eq=False)
 class Move:
     """One tip move: a polyline in the layout frame.
@@ -222,6 +212,14 @@ class Profile:
     @property
     def n_samples(self) -> int:
         return int(self.ends[-1]) if self.ends.size else 0
+
+    def rests(self) -> np.ndarray:
+        """Samples (1-based) where XY comes to rest: the last of a travel or a push that
+        another kind follows (the tip lowered or lifted there), and the path's last."""
+        full = self.count > 0
+        kind, ends = self.kind[full], self.ends[full]
+        moving = (kind == TRAVEL) | (kind == PUSH)
+        return np.append(ends[:-1][moving[:-1] & (kind[1:] != kind[:-1])], ends[-1:]).astype(np.int64)
 
     def sample(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Vertices-space positions ``(n, 4)`` and segment kinds ``(n,)`` at samples ``k``.
