@@ -167,6 +167,7 @@ class CreepHistory:
     def __init__(self, params: CreepModelParams):
         self.params = params
         self.frozen = np.zeros(2)
+        self.frozen_steps = np.zeros(2)     # the frozen moves' steps, summed
         self._times: list[float] = []
         self._steps: list[tuple[float, float]] = []
 
@@ -214,6 +215,15 @@ class CreepHistory:
         p = self.params
         return self.frozen + creep_offset(t, self.times, self.steps, p.amplitude, p.tau)
 
+    def tau_sensitivity(self, t: float) -> np.ndarray:
+        """(2,) array: ``∂ offset / ∂ ln τ`` (nm) at ``t``, ``c/ln 10 Σ s_i x_i/(1 + x_i)``
+        with ``x_i = (t − t_i)/τ``; a frozen move's ``x`` is large (its creep rate fell below
+        ``rate_tol``), so it counts in full. An error ``λ`` of ``ln τ`` shifts the offset by
+        ``λ`` times this (to first order; exactly, once ``x ≫ 1``)."""
+        p = self.params
+        x = np.maximum(t - self.times, 0.0) / p.tau
+        return p.amplitude / math.log(10.0) * (self.frozen_steps + (x / (1.0 + x)) @ self.steps)
+
     def cov_sqrt(self, t: float) -> np.ndarray:
         """(2, 1) array: factor of the creep input's covariance at ``t``,
         ``amplitude_std g`` with ``g`` the creep per unit amplitude of the kept moves."""
@@ -245,6 +255,7 @@ class CreepHistory:
         p = self.params
         times, steps = self.times, self.steps
         self.frozen = self.frozen + creep_offset(t, times[mask], steps[mask], p.amplitude, p.tau)
+        self.frozen_steps = self.frozen_steps + steps[mask].sum(axis=0)
         self._times = times[~mask].tolist()
         self._steps = [tuple(s) for s in steps[~mask].tolist()]
         return int(mask.sum())

@@ -107,11 +107,17 @@ class DriftFilter:
         ``thermal + creep + δc g``, ``g`` the creep per unit amplitude. A measurement
         may depend on ``δc`` beyond the creep now: :meth:`measure_projected`'s
         ``static`` then has one column more, added to ``δc``'s.
+    tau_static : int, optional
+        Index, among the ``statics``, of ``λ``, the error of the creep time constant's
+        logarithm: the offset is then ``thermal + creep + λ h + …``, ``h`` the creep per
+        unit ``ln τ`` (:meth:`~nanoasm.drift.creep.CreepHistory.tau_sensitivity`), added
+        to that static's row in every measurement and prediction; and a move no longer
+        widens the estimate by ``creep.tau_std`` (the state holds that uncertainty).
     """
 
     def __init__(self, params: DriftFilterParams | None = None, *, epoch: float = 0.0,
                  x0: np.ndarray | None = None, P0: np.ndarray | None = None, statics: int = 0,
-                 start: float = 0.0, learn_creep: bool = False):
+                 start: float = 0.0, learn_creep: bool = False, tau_static: int | None = None):
         self.params = params if params is not None else DriftFilterParams()
         number("epoch", epoch)
         number("start", start, nonnegative=True)
@@ -119,6 +125,9 @@ class DriftFilter:
         p = self.params
         n = STATE_DIM + self.statics
         self.learn_creep = bool(learn_creep)
+        if tau_static is not None and not 0 <= int(tau_static) < self.statics:
+            raise ValueError(f"tau_static must index one of the {self.statics} statics, got {tau_static!r}")
+        self.tau_static = None if tau_static is None else int(tau_static)
         self.epoch = float(epoch)
         self._tau = float(start)
         self._x = np.zeros(n) if x0 is None else np.asarray(x0, float).copy()
@@ -159,8 +168,9 @@ class DriftFilter:
         c = self.creep
         return {"epoch": self.epoch, "tau": self._tau, "x": self._x.tolist(), "L": self._L.tolist(),
                 "measured": len(self.measurements), "statics": self.statics - int(self.learn_creep),
-                "learn_creep": self.learn_creep,
-                "creep": {"frozen": c.frozen.tolist(), "times": c.times.tolist(), "steps": c.steps.tolist()}}
+                "learn_creep": self.learn_creep, "tau_static": self.tau_static,
+                "creep": {"frozen": c.frozen.tolist(), "times": c.times.tolist(), "steps": c.steps.tolist(),
+                          "frozen_steps": c.frozen_steps.tolist()}}
 
     @classmethod
     def from_state(cls, params: DriftFilterParams, state: dict) -> DriftFilter:
@@ -174,13 +184,15 @@ class DriftFilter:
             if x.shape != (n,) or L.shape != (n, n) or not (np.all(np.isfinite(x)) and np.all(np.isfinite(L))):
                 raise ValueError(f"x and L must be finite with shapes ({n},) and ({n}, {n})")
             m = n - int(learn)
-            f = cls(params, epoch=float(state["epoch"]), x0=x[:m], P0=np.eye(m), statics=k, learn_creep=learn)
+            f = cls(params, epoch=float(state["epoch"]), x0=x[:m], P0=np.eye(m), statics=k, learn_creep=learn,
+                    tau_static=state.get("tau_static"))
         else:
             x, L = _check_state(state["x"], state["L"])      # the factor L checked as P would be
             f = cls(params, epoch=float(state["epoch"]))
         for t, step in zip(state["creep"]["times"], state["creep"]["steps"]):
             f.creep.record(float(t), step)
         f.creep.frozen = np.asarray(state["creep"]["frozen"], float).reshape(2)
+        f.creep.frozen_steps = np.asarray(state["creep"].get("frozen_steps", (0.0, 0.0)), float).reshape(2)
         f._commit(tau, 0.0, x, L, x, L, np.zeros((x.shape[0], 0)), "resume")
         f._anchor = (len(f.history) - 1, tau)
         f.resumed_measurements = int(state.get("measured", 0))
@@ -234,6 +246,9 @@ class DriftFilter:
             S, extra = S[:, :user], S[:, user]
         if S.shape != (m, user) or not np.all(np.isfinite(S)) or not np.all(np.isfinite(extra)):
             raise ValueError(f"static must be a finite ({m}, {user}) array")
+        if self.tau_static is not None:              # λ: the time constant's error, now
+            S = S.copy()
+            S[:, self.tau_static] += N @ self.creep.tau_sensitivity(tau)
         parts = [N @ H_OFFSET, S]
         if self.learn_creep:
             parts.append((N @ self._sensitivity(tau) + extra)[:, None])
@@ -350,7 +365,7 @@ class DriftFilter:
                 kept += np.asarray(step, float).reshape(2)
                 n += 1
         c, sd = self.params.creep.amplitude, self.params.creep.tau_std
-        if n and c > 0 and sd > 0:
+        if n and c > 0 and sd > 0 and self.tau_static is None:
             g = np.zeros((self._x.shape[0], 1))
             g[:2, 0] = kept * (c * sd / math.log(10.0))
             L = tria(np.hstack([self._L, g]))

@@ -9,6 +9,7 @@ measure and what a measurement means is the drift estimator's
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -19,10 +20,17 @@ from .engine import Msg
 from .edge_scan import edge_pattern
 from .landmarks import EDGE_SPACING
 from .relocalise import keep_track
+from .scan_drift import LAM
 from .scan_steps import locate, run_pattern
 
 #: Objects scanned again to find the drift velocity from the full scan's skew.
 BOOTSTRAP_OBJECTS = 4
+#: Twice as many where the creep time constant's uncertainty (its prior) moves one side of
+#: the area against the other by more than this (nm, 1σ: ``c σ_λ side / ln 10``, twice a
+#: located centre's own): its error offsets a reference in proportion to where it lies,
+#: which four references along the rows take for velocity (wide seed 8, 16 µm: λ -0.06 of
+#: a true -0.34 with four, -0.23 with eight); on a 4 µm area it is 3.5 nm, on 5 µm 4.3.
+TAU_SPREAD = 4.0
 #: Variance (nm²) of a component a bootstrap reference measures: the located centre's
 #: and the full scan's (2 nm each), and what the model leaves (the random walk, creep).
 BOOTSTRAP_VAR = 16.0
@@ -154,9 +162,9 @@ def _site_creep(res, normals) -> np.ndarray | None:
     return np.einsum("ij,ij->i", np.asarray(normals, float), res.line_creep)
 
 
-def _bootstrap_picks(ctx: RunContext) -> list[tuple[str, str, float]]:
+def _bootstrap_picks(ctx: RunContext, count: int) -> list[tuple[str, str, float]]:
     """What the bootstrap may scan again, in order: ``(kind, id, time seen)``. First
-    :data:`BOOTSTRAP_OBJECTS` spread over the full scan's rows, latest first (their
+    ``count`` spread over the full scan's rows, latest first (their
     drift since is the smallest, so their lines are short, and every one sharpens the
     velocity that sizes the next one's lines), then the rest, latest first, for when
     those do not measure both coordinates. Particles and corners measure both; straight
@@ -170,11 +178,20 @@ def _bootstrap_picks(ctx: RunContext) -> list[tuple[str, str, float]]:
     both.sort(key=lambda c: (c[2], c[1]))
     if not both:
         return sorted(edges, key=lambda c: (-c[2], c[1]))
-    k = min(BOOTSTRAP_OBJECTS, len(both))
+    k = min(count, len(both))
     spread = [both[round(j * (len(both) - 1) / max(k - 1, 1))] for j in range(k)]
     first = sorted(dict.fromkeys(spread), key=lambda c: (-c[2], c[1]))
     rest = sorted((c for c in both + edges if c not in first), key=lambda c: (-c[2], c[1]))
     return first + rest
+
+
+def _tau_spread(ctx: RunContext) -> float:
+    """How far (nm, 1σ) the creep time constant's uncertainty as the full scan's model
+    knows it (before the bootstrap: its prior) moves one side of the area against the
+    other: ``c σ_λ side / ln 10``."""
+    scan = ctx.drift.scan
+    return (ctx.drift.params.creep.amplitude * math.sqrt(max(float(scan.cov[LAM, LAM]), 0.0))
+            * max(ctx.belief.area) / math.log(10.0))
 
 
 def unskewed_obstacles(obstacles, drift, row_time) -> tuple:
@@ -203,27 +220,29 @@ def bootstrap(ctx: RunContext):
     squares, they start the drift filter and take every other object of the first scan
     out of its row's drift. Each reference sharpens the model that sizes the next one's
     lines; the variance of a measured component is taken as :data:`BOOTSTRAP_VAR` plus the
-    located position's own (which holds what the lines' creep compensation may err by)
-    and what the creep's time constant leaves of the travels so far
-    (:func:`~.creep_terms.tau_spread`).
+    located position's own (which holds what the lines' creep compensation may err by).
+    The model holds the creep's time constant's error too (``λ``, each row's dependence
+    on it :func:`~.creep_terms.tau_sensitivity`), which the filter then carries; on a wide
+    area more references are scanned for it (:data:`TAU_SPREAD`).
     """
     drift = ctx.drift
     if not drift.bootstraps:
         return
     drift.full_scan_done()
-    picks = _bootstrap_picks(ctx)
+    count = BOOTSTRAP_OBJECTS * (2 if _tau_spread(ctx) > TAU_SPREAD else 1)
+    picks = _bootstrap_picks(ctx, count)
     t_start = yield Msg("clock")
     seen_objects, used, t_last = [], 0, t_start
     for kind, rid, seen_t in picks:
-        if used >= (BOOTSTRAP_OBJECTS if drift.velocity_known else 3 * BOOTSTRAP_OBJECTS):
+        if used >= (count if drift.velocity_known else 3 * BOOTSTRAP_OBJECTS):
             break
         scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t)
         if scanned is None:
             continue
         rows, t, seen = scanned
-        spread = creep_terms.tau_spread(drift, t)       # the creep's time constant is known to ±30 %
+        lam1 = creep_terms.tau_sensitivity(drift, t)    # the creep's time constant is known to ±30 %
         for n, z, tau1, tau0, creep1, var in rows:
-            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var + float(n @ spread) ** 2, creep1=creep1)
+            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1)
         if seen is not None:
             seen_objects.append(seen)
         used += 1

@@ -26,7 +26,7 @@ from nanoasm.drift.creep import CreepingOffset, CreepModelParams
 from . import creep_terms
 from .reference_choice import Candidate, best, object_candidates
 from .references import References
-from .scan_drift import ScanDrift
+from .scan_drift import EPS, LAM, PARAMETERS, ScanDrift
 from .strategy import ExecOptions
 from .trust import Trust
 
@@ -64,8 +64,9 @@ class Kalman:
         self.trust = Trust()                          # references rejected in a row, relocalisations
         # the drift the full scan's rows carried (the filter's own velocity follows the
         # drift as it changes later)
-        self.scan = ScanDrift(self.epoch, self.params.velocity_std, self.params.creep.amplitude,
-                              self.params.creep.tau, creep_std=self.params.creep.amplitude_std)
+        c = self.params.creep
+        self.scan = ScanDrift(self.epoch, self.params.velocity_std, c.amplitude, c.tau,
+                              creep_std=c.amplitude_std, tau_std=c.tau_std)
 
     @property
     def velocity_known(self) -> bool:
@@ -79,19 +80,20 @@ class Kalman:
         state as static parameters, so that every reference measured against the full
         scan refines them and their errors are never taken for independent noise; the
         moves recorded so far are its creep input, whose amplitude it learns too (a real
-        scanner's is known to some ±30 %)."""
+        scanner's is known to some ±30 %), and its time constant's error ``λ`` (a static
+        whose effect the filter adds itself, every move's)."""
         tau = t - self.epoch
         k, c = SCAN_STATICS, self.params.creep.amplitude
-        # state: thermal offset and velocity at τ, θ's thermal part, the creep amplitude's
-        # error c ε (the filter's creep term carries ε for every move, the scan's too)
+        # state: thermal offset and velocity at τ, θ's thermal part, λ, the creep
+        # amplitude's error c ε (the filter's creep term carries ε for every move, the scan's too)
         M = np.vstack([self.scan.thermal_jacobian(tau), self.scan.velocity_jacobian(tau),
-                       np.eye(k, k + 1), np.eye(1, k + 1, k) * c])
+                       np.eye(k, PARAMETERS), np.eye(1, PARAMETERS, LAM), np.eye(1, PARAMETERS, EPS) * c])
         x0 = M @ self.scan.theta
         P0 = M @ self.scan.cov @ M.T
         P0[:2, :2] += np.eye(2) * 4.0
         P0[2:4, 2:4] += np.eye(2) * 1e-6
-        self.filter = DriftFilter(self.params, epoch=self.epoch, x0=x0, P0=0.5 * (P0 + P0.T), statics=k,
-                                  start=tau, learn_creep=True)
+        self.filter = DriftFilter(self.params, epoch=self.epoch, x0=x0, P0=0.5 * (P0 + P0.T), statics=k + 1,
+                                  start=tau, learn_creep=True, tau_static=k)
         for t_move, step in self.move_log:
             self.filter.creep.record(t_move - self.epoch, step)
 
@@ -99,17 +101,20 @@ class Kalman:
         """The full scan's drift model ``θ`` and its covariance: the filter's once it
         holds them (after the bootstrap), the bootstrap's before."""
         if self.filter.statics:
-            idx = [*range(4, 4 + SCAN_STATICS), -1]          # θ's thermal part, then c ε
-            scale = np.ones(len(idx))
-            scale[-1] = 1.0 / self.params.creep.amplitude
+            old = self.filter.tau_static is None          # a checkpoint from before λ: λ = 0
+            idx = [*range(4, 4 + SCAN_STATICS), -1, -1 if old else 4 + self.filter.tau_static]
+            scale = np.ones(len(idx))                      # θ's thermal part, c ε, λ
+            scale[EPS], scale[LAM] = 1.0 / self.params.creep.amplitude, 0.0 if old else 1.0
             P = self.filter.P
             return self.filter.x[idx] * scale, P[np.ix_(idx, idx)] * np.outer(scale, scale)
         return self.scan.theta, self.scan.cov
 
     def static_rows(self, normals, taus) -> np.ndarray:
         """How components measured against the full scan depend on the filter's statics
-        ``θ`` and its creep amplitude error ``c ε``: ``-n_k J(τ_k)``, ``ε``'s column per ``c``."""
-        J = np.array([-np.asarray(n, float) @ self.scan.jacobian(tau) for n, tau in zip(normals, taus)])
+        ``θ`` (``λ`` among them) and its creep amplitude error ``c ε``: ``-n_k J(τ_k)``,
+        ``ε``'s column per ``c`` (the filter adds λ's effect now itself)."""
+        cols = [*range(SCAN_STATICS), *([LAM] if self.filter.tau_static is not None else []), EPS]
+        J = np.array([-np.asarray(n, float) @ self.scan.jacobian(tau)[:, cols] for n, tau in zip(normals, taus)])
         J[:, -1] /= self.params.creep.amplitude
         return J
 
@@ -124,7 +129,8 @@ class Kalman:
             tau = t - self.epoch
             theta = self.scan.theta
             return (self.origin + self.scan.thermal_jacobian(tau) @ theta
-                    + (1.0 + theta[-1]) * self.filter.creep.offset(tau))
+                    + (1.0 + theta[EPS]) * self.filter.creep.offset(tau)
+                    + theta[LAM] * creep_terms.tau_sensitivity(self, t))
         return self.origin + np.asarray(self.filter.offset(t).offset, float)
 
     def offset_cov(self, t: float) -> np.ndarray:
@@ -379,11 +385,11 @@ class Kalman:
     @classmethod
     def from_state(cls, state: dict, options: ExecOptions) -> Kalman:
         out = cls(state["origin"], state["epoch"], options)
+        out.scan = ScanDrift.from_state(state["scan"])
         out.filter = DriftFilter.from_state(out.params, state["filter"])
         ca = state["creep_anchor"]
         out.creep_anchor = None if ca is None else np.asarray(ca, float)
         out.trust = Trust.from_state(state)
-        out.scan = ScanDrift.from_state(state["scan"])
         return out
 
 

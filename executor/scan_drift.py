@@ -6,18 +6,24 @@ frame is the scanner frame then). Every position taken from the full scan (an ob
 a fixed feature's, a relocalisation window's) is put back by ``D(τ)``, for the whole
 run; the drift filter's own state follows the drift as it goes on changing later.
 
-The model over the scan is ``D(τ) = v τ + a τ²/2 + (1 + ε) creep(τ)``: a velocity
+The model over the scan is ``D(τ) = v τ + a τ²/2 + (1 + ε) creep(τ) + λ ∂creep/∂ln τ_c``: a velocity
 ``v`` that may change at a steady rate ``a`` (a drifting stage settles over hours: the
 velocity changes by a few hundredths of nm/s in ten minutes), and the creep of the
 scanner moves made before the scan ended (the drift filter's creep history folds old
 moves into a constant valid only from then on, so these are kept apart), at an
-amplitude known only to a relative error ``ε`` (a real scanner's to some ±30 %). The
-creep of the travels to the references scanned again is a few hundred nm on a wide
-area, so a model without ``ε`` takes the error of its amplitude for velocity. ``θ = (v,
-a, ε)`` starts from a prior and is measured by Bayesian least squares: scanning a
-reference again at ``t`` gives its component along ``n`` of ``D(t) − D(τ)`` (the creep
-at ``t`` of every move so far), linear in ``θ``; the drift filter then carries ``ε`` as
-its learnt creep amplitude error.
+amplitude known only to a relative error ``ε`` and a time constant ``τ_c`` known only
+to a relative error ``λ = δ ln τ_c`` (a real scanner's each to some ±30 %). The creep of
+the travels to the references scanned again is a few hundred nm on a wide area, so a
+model without ``ε`` takes the error of its amplitude for velocity; and seconds after a
+move ``s`` its creep is ``c s (log10 t − log10 τ_c)``, so an error of ``τ_c`` leaves an
+offset ``c s λ / ln 10`` along every long travel (17 nm after 10 µm at λ = −0.34), which
+a model without ``λ`` takes for velocity too: on wide seed 8 (τ_c 29 % short) the rows of
+a 1600 s scan came out up to 13 nm apart from where they were. ``θ = (v, a, ε, λ)``
+starts from a prior and is measured by Bayesian least squares: scanning a reference
+again at ``t`` gives its component along ``n`` of ``D(t) − D(τ)`` (the creep at ``t`` of
+every move so far), linear in ``θ`` (in ``λ`` too: ``∂creep/∂λ = c/ln 10 Σ s_i x_i/(1 +
+x_i)``, ``x_i`` the time since move ``i`` in units of ``τ_c``); the drift filter then
+carries ``ε`` as its learnt creep amplitude error and runs at the time constant learnt.
 """
 
 from __future__ import annotations
@@ -32,21 +38,34 @@ ACCELERATION_STD = 5e-5
 KNOWN_VELOCITY_STD = 0.05
 
 
-#: Number of the model's parameters ``θ = (vx, vy, ax, ay, ε)``.
-PARAMETERS = 5
+#: Number of the model's parameters ``θ = (vx, vy, ax, ay, ε, λ)``.
+PARAMETERS = 6
+#: Indices of the creep amplitude's relative error ``ε`` and of ``λ = δ ln τ_c`` in ``θ``.
+EPS, LAM = 4, 5
+
+
+def tau_sensitivity(t: float, move_times, move_steps, amplitude: float, tau: float) -> np.ndarray:
+    """``∂ creep_offset / ∂ ln τ_c`` (nm) at ``t`` of the moves: ``c/ln 10 Σ s_i x_i/(1 +
+    x_i)``, ``x_i = max(t − t_i, 0) / τ_c`` (:func:`~nanoasm.drift.creep.creep_offset`'s sign)."""
+    times = np.asarray(move_times, float).reshape(-1)
+    if times.size == 0:
+        return np.zeros(2)
+    x = np.maximum(t - times, 0.0) / tau
+    return amplitude / np.log(10.0) * ((x / (1.0 + x)) @ np.asarray(move_steps, float).reshape(-1, 2))
 
 
 class ScanDrift:
-    """``θ = (vx, vy, ax, ay, ε)`` (nm/s, nm/s², 1) with its covariance, and the moves made
-    before the full scan ended (``moves``: rows of ``(t, sx, sy)``, instrument s and nm).
-    Times ``τ`` are s after the epoch ``epoch``."""
+    """``θ = (vx, vy, ax, ay, ε, λ)`` (nm/s, nm/s², 1, 1) with its covariance, and the moves
+    made before the full scan ended (``moves``: rows of ``(t, sx, sy)``, instrument s and
+    nm). Times ``τ`` are s after the epoch ``epoch``. ``tau_std``: the prior σ of ``λ``."""
 
     def __init__(self, epoch: float, velocity_std: float, creep_amplitude: float, creep_tau: float,
-                 acceleration_std: float = ACCELERATION_STD, creep_std: float = 0.0):
+                 acceleration_std: float = ACCELERATION_STD, creep_std: float = 0.0, tau_std: float = 0.0):
         self.epoch = float(epoch)
         self.theta = np.zeros(PARAMETERS)
         rel = creep_std / creep_amplitude if creep_amplitude > 0 else 0.0
-        self.cov = np.diag([velocity_std ** 2] * 2 + [acceleration_std ** 2] * 2 + [max(rel, 1e-9) ** 2])
+        self.cov = np.diag([velocity_std ** 2] * 2 + [acceleration_std ** 2] * 2 + [max(rel, 1e-9) ** 2]
+                           + [max(tau_std, 1e-9) ** 2])
         self.creep = (float(creep_amplitude), float(creep_tau))
         self.moves = np.zeros((0, 3))
         self.ended = False                   # the full scan has ended
@@ -56,18 +75,21 @@ class ScanDrift:
 
     @staticmethod
     def thermal_jacobian(tau: float) -> np.ndarray:
-        """``∂D(τ)/∂θ`` of the thermal part alone (``ε``'s column zero), (2, 5)."""
-        return np.hstack([np.eye(2) * tau, np.eye(2) * 0.5 * tau * tau, np.zeros((2, 1))])
+        """``∂D(τ)/∂θ`` of the thermal part alone (``ε``'s and ``λ``'s columns zero), (2, 6)."""
+        return np.hstack([np.eye(2) * tau, np.eye(2) * 0.5 * tau * tau, np.zeros((2, 2))])
 
     @staticmethod
     def velocity_jacobian(tau: float) -> np.ndarray:
-        """``∂v(τ)/∂θ``: the thermal drift velocity at ``τ``, (2, 5)."""
-        return np.hstack([np.eye(2), np.eye(2) * tau, np.zeros((2, 1))])
+        """``∂v(τ)/∂θ``: the thermal drift velocity at ``τ``, (2, 6)."""
+        return np.hstack([np.eye(2), np.eye(2) * tau, np.zeros((2, 2))])
 
     def jacobian(self, tau: float) -> np.ndarray:
-        """``∂D(τ)/∂θ``, (2, 5): ``ε``'s column is the nominal creep of the scan's moves."""
+        """``∂D(τ)/∂θ``, (2, 6): ``ε``'s column is the nominal creep of the scan's moves,
+        ``λ``'s their creep per unit ``δ ln τ_c``."""
         J = self.thermal_jacobian(tau)
-        J[:, 4] = self.creep_at(tau)
+        J[:, EPS] = self.creep_at(tau)
+        a, tc = self.creep
+        J[:, LAM] = tau_sensitivity(self.epoch + tau, self.moves[:, 0], self.moves[:, 1:], a, tc)
         return J
 
     @property
@@ -109,13 +131,17 @@ class ScanDrift:
         self.moves = np.array([[t, s[0], s[1]] for t, s in moves], float).reshape(-1, 3)
         self.ended = True
 
-    def measure(self, n, z: float, tau1: float, tau0: float, var: float, creep1=None) -> None:
+    def measure(self, n, z: float, tau1: float, tau0: float, var: float, creep1=None, lam1=None) -> None:
         """A reference seen at ``τ0`` in the full scan and at ``τ1`` again: ``z`` (nm, the
         nominal creep taken out) is the component along unit ``n`` of ``D(τ1) − D(τ0)``,
         with variance ``var`` (nm²). ``creep1``: the nominal creep (nm) at ``τ1`` of every
-        move made so far; by default the scan's moves alone."""
-        J1 = self.thermal_jacobian(tau1)
-        J1[:, 4] = self.creep_at(tau1) if creep1 is None else np.asarray(creep1, float)
+        move made so far, ``lam1`` its derivative by ``ln τ_c`` (:func:`tau_sensitivity`);
+        by default the scan's moves alone."""
+        J1 = self.jacobian(tau1)
+        if creep1 is not None:
+            J1[:, EPS] = np.asarray(creep1, float)
+        if lam1 is not None:
+            J1[:, LAM] = np.asarray(lam1, float)
         h = np.asarray(n, float) @ (J1 - self.jacobian(tau0))
         self.info += np.outer(h, h) / var
         self.eta += h * z / var

@@ -1027,3 +1027,63 @@ def test_a_long_move_widens_the_offset_along_its_step_for_the_creep_time_constan
                         P0=np.diag([4.0, 4.0, 1e-4, 1e-4]))
     plain.record_move(10.0, (6000.0, 8000.0))
     np.testing.assert_allclose(plain.P, before)
+
+
+def test_the_creep_history_knows_how_its_creep_depends_on_the_time_constant():
+    """``tau_sensitivity`` is ``∂ offset / ∂ ln τ`` of the kept moves (against a finite
+    difference of the closed form) and counts a frozen move in full (``x ≫ 1``)."""
+    creep = CreepModelParams(amplitude=0.01, tau=0.1, rate_tol=1e-3)
+    h = CreepHistory(creep)
+    moves = [(10.0, (5000.0, 0.0)), (20.0, (0.0, -3000.0))]
+    for t, s in moves:
+        h.record(t, s)
+    d = 1e-5
+    numeric = (creep_offset(25.0, [10.0, 20.0], [m[1] for m in moves], 0.01, 0.1 * math.exp(d))
+               - creep_offset(25.0, [10.0, 20.0], [m[1] for m in moves], 0.01, 0.1)) / d
+    np.testing.assert_allclose(h.tau_sensitivity(25.0), numeric, rtol=1e-4)
+    late = 1e6
+    assert h.prune(late) == 2 and len(h) == 0
+    np.testing.assert_allclose(h.tau_sensitivity(late), 0.01 / math.log(10.0) * np.array([5000.0, -3000.0]))
+
+
+def test_a_filter_learns_the_creep_time_constant_it_was_wrong_about():
+    """Truth creeps with τ 28 % shorter than nominal (and 19 % more): a long travel to one
+    of twenty references spread over 15 µm, then three measurements a second apart. With
+    ``tau_static`` the filter learns λ = δ ln τ (its error then moves every reference by
+    ``c λ / ln 10`` per nm of travel, 1.5 nm a µm here) and predicts the offset after a
+    travel better than the same filter treating the time constant's error as noise; it
+    resumes from its checkpoint with λ."""
+    c_true, tau_true = 0.0119, 0.0715
+    creep = CreepModelParams(amplitude=0.01, tau=0.1, amplitude_std=0.003, tau_std=0.2)
+    params = DriftFilterParams(q=1e-6, q_offset=0.01, offset_std=1.0, creep=creep)
+    v = np.array([0.2, -0.1])
+    runs = {}
+    for learn in (False, True):
+        rng = np.random.default_rng(1)               # the same world for both
+        refs = rng.uniform(0.0, 15000.0, (20, 2))
+        f = DriftFilter(params, x0=np.zeros(5 if learn else 4), P0=np.diag([4, 4, 1e-4, 1e-4, 0.04][:5 if learn else 4]),
+                        statics=int(learn), learn_creep=True, tau_static=0 if learn else None)
+        pos, t, moves, errs = np.array([7500.0, 7500.0]), 0.0, [], []
+        for k in range(80):
+            r = refs[rng.integers(len(refs))]
+            t += 1.0
+            if np.hypot(*(r - pos)) >= creep.min_step:     # the world creeps as the filter records
+                moves.append((t, r - pos))
+                f.record_move(t, r - pos)
+            pos = r
+            for _ in range(3):
+                t += 1.0
+                truth = v * t + creep_offset(t, [m[0] for m in moves], [m[1] for m in moves], c_true, tau_true)
+                if _ == 0:
+                    errs.append(np.hypot(*(f.offset(t).offset - truth)))    # predicted after the travel
+                f.measure_projected(t, truth + rng.normal(0, 1.0, 2), np.eye(2), np.eye(2))
+        runs[learn] = (f, np.sqrt(np.mean(np.square(errs[20:]))))
+    f, err = runs[True]
+    assert f.tau_static == 0 and abs(f.x[4] - math.log(tau_true / 0.1)) < 0.1
+    assert err < 0.25 * runs[False][1]
+    back = DriftFilter.from_state(f.params, f.state_dict())
+    assert back.tau_static == 0 and np.allclose(back.x, f.x)
+    np.testing.assert_allclose(back.creep.tau_sensitivity(t), f.creep.tau_sensitivity(t))
+    np.testing.assert_allclose(back.offset(t + 5.0).offset, f.offset(t + 5.0).offset)
+    with pytest.raises(ValueError, match="tau_static"):
+        DriftFilter(params, x0=np.zeros(4), P0=np.eye(4), tau_static=0)

@@ -4,6 +4,7 @@ and what a registered relocalisation window measures (relocalise._window_offset)
 
 from __future__ import annotations
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -12,31 +13,33 @@ import pytest
 from nanoasm.drift.creep import creep_offset
 from nanoasm.executor.edges import Edges
 from nanoasm.executor.relocalise import _window_offset
-from nanoasm.executor.scan_drift import PARAMETERS, ScanDrift
+from nanoasm.executor.scan_drift import EPS, LAM, PARAMETERS, ScanDrift, tau_sensitivity
 from nanoasm.executor.scan_lines import LineOutcome, LocalScanResult, ScanLine
 
 AMP, TAU = 0.01, 0.1
 
 
-def _bootstrap(truth_eps: float, creep_std: float, seed: int = 3):
+def _bootstrap(truth_eps: float, creep_std: float, seed: int = 3, truth_tau: float = TAU, tau_std: float = 0.0):
     """References seen during a 1000 s scan (no moves then) scanned again after long
-    travels whose creep is at ``1 + truth_eps`` times the nominal amplitude; returns the
-    model and the true velocity."""
+    travels whose creep is at ``1 + truth_eps`` times the nominal amplitude (and time
+    constant ``truth_tau``); returns the model and the true velocity."""
     rng = np.random.default_rng(seed)
     v = np.array([0.3, -0.2])
-    sd = ScanDrift(0.0, 0.5, AMP, TAU, creep_std=creep_std)
+    sd = ScanDrift(0.0, 0.5, AMP, TAU, creep_std=creep_std, tau_std=tau_std)
     sd.scan_ended([])
     moves, t = [], 1000.0
     for k in range(8):
         step = np.array([6000.0, 4000.0]) * (1 if k % 2 else -1) + rng.normal(0, 500, 2)
         moves.append((t, step))
         t += 2.0
-        nominal = creep_offset(t, [m[0] for m in moves], [m[1] for m in moves], AMP, TAU)
+        times, steps = [m[0] for m in moves], [m[1] for m in moves]
+        nominal = creep_offset(t, times, steps, AMP, TAU)
+        true_creep = creep_offset(t, times, steps, AMP * (1.0 + truth_eps), truth_tau)
         tau0 = 100.0 + 110.0 * k
-        drift = v * (t - tau0) + (1.0 + truth_eps) * nominal        # D(t) - D(τ0)
+        drift = v * (t - tau0) + true_creep                         # D(t) - D(τ0)
         for e in np.eye(2):
             z = float(e @ (drift - nominal)) + rng.normal(0, 1.0)   # the nominal creep taken out
-            sd.measure(e, z, t, tau0, 1.0, creep1=nominal)
+            sd.measure(e, z, t, tau0, 1.0, creep1=nominal, lam1=tau_sensitivity(t, times, steps, AMP, TAU))
     return sd, v
 
 
@@ -45,12 +48,23 @@ def test_the_scan_model_learns_the_creep_amplitude_and_so_the_velocity():
     without it (ε pinned to 0) the amplitude's error is taken for velocity."""
     sd, v = _bootstrap(0.3, creep_std=0.002)
     assert sd.theta.shape == (PARAMETERS,)
-    assert sd.theta[-1] == pytest.approx(0.3, abs=0.03)
+    assert sd.theta[EPS] == pytest.approx(0.3, abs=0.03)
     assert np.abs(sd.theta[:2] - v).max() < 0.005
-    eps_std = np.sqrt(sd.cov[-1, -1])
-    assert abs(sd.theta[-1] - 0.3) < 3 * eps_std
+    eps_std = np.sqrt(sd.cov[EPS, EPS])
+    assert abs(sd.theta[EPS] - 0.3) < 3 * eps_std
     pinned, _ = _bootstrap(0.3, creep_std=0.0)
     assert np.abs(pinned.theta[:2] - v).max() > 2 * np.abs(sd.theta[:2] - v).max()
+
+
+def test_the_scan_model_learns_the_creep_time_constant_and_so_the_velocity():
+    """τ 30 % short of nominal: each long travel leaves ``c s λ / ln 10`` (17 nm for
+    10 µm) that a model without ``λ`` takes for velocity; with ``λ`` (prior σ 0.2) the
+    velocity comes out several times closer, ``λ`` near its truth."""
+    truth = math.log(0.7)
+    sd, v = _bootstrap(0.1, creep_std=0.003, truth_tau=0.7 * TAU, tau_std=0.2)
+    pinned, _ = _bootstrap(0.1, creep_std=0.003, truth_tau=0.7 * TAU, tau_std=0.0)
+    assert abs(sd.theta[LAM] - truth) < 3 * math.sqrt(sd.cov[LAM, LAM]) and abs(sd.theta[LAM] - truth) < 0.1
+    assert np.abs(pinned.theta[:2] - v).max() > 3 * np.abs(sd.theta[:2] - v).max()
 
 
 def test_a_checkpoint_from_before_the_creep_error_resumes_with_it_zero_and_known():
