@@ -95,6 +95,19 @@ def creep_offset(t: float, move_times: np.ndarray, move_steps: np.ndarray,
     return -amplitude * (weights @ steps)
 
 
+def creep_tau_sensitivity(t: float, move_times: np.ndarray, move_steps: np.ndarray,
+                          amplitude: float, tau: float) -> np.ndarray:
+    """``∂ creep_offset / ∂ ln τ`` (nm, (2,)) at ``t`` of the moves: ``c/ln 10 Σ s_i x_i/(1 +
+    x_i)``, ``x_i = max(t − t_i, 0) / τ``. An error ``λ`` of ``ln τ`` shifts the offset by
+    ``λ`` times this (to first order; exactly once ``x ≫ 1``, when the creep is
+    ``c s (log10 t − log10 τ)``)."""
+    times = np.asarray(move_times, float).reshape(-1)
+    if times.size == 0:
+        return np.zeros(2)
+    x = np.maximum(t - times, 0.0) / tau
+    return amplitude / math.log(10.0) * ((x / (1.0 + x)) @ np.asarray(move_steps, float).reshape(-1, 2))
+
+
 def creep_rate(t: float, move_times: np.ndarray, move_steps: np.ndarray,
                amplitude: float, tau: float) -> np.ndarray:
     """Remaining creep speed of each move at ``t``: ``c |s_i| / (ln 10 (τ + t - t_i))``.
@@ -216,13 +229,12 @@ class CreepHistory:
         return self.frozen + creep_offset(t, self.times, self.steps, p.amplitude, p.tau)
 
     def tau_sensitivity(self, t: float) -> np.ndarray:
-        """(2,) array: ``∂ offset / ∂ ln τ`` (nm) at ``t``, ``c/ln 10 Σ s_i x_i/(1 + x_i)``
-        with ``x_i = (t − t_i)/τ``; a frozen move's ``x`` is large (its creep rate fell below
-        ``rate_tol``), so it counts in full. An error ``λ`` of ``ln τ`` shifts the offset by
-        ``λ`` times this (to first order; exactly, once ``x ≫ 1``)."""
+        """(2,) array: ``∂ offset / ∂ ln τ`` (nm) at ``t`` (:func:`creep_tau_sensitivity`),
+        frozen part included: a frozen move's creep rate fell below ``rate_tol``, so its
+        ``x`` is large and it counts in full."""
         p = self.params
-        x = np.maximum(t - self.times, 0.0) / p.tau
-        return p.amplitude / math.log(10.0) * (self.frozen_steps + (x / (1.0 + x)) @ self.steps)
+        return (p.amplitude / math.log(10.0) * self.frozen_steps
+                + creep_tau_sensitivity(t, self.times, self.steps, p.amplitude, p.tau))
 
     def cov_sqrt(self, t: float) -> np.ndarray:
         """(2, 1) array: factor of the creep input's covariance at ``t``,

@@ -7,9 +7,8 @@ bootstrap, the drift filter as ``δc`` (absolute) after. Right after a long trav
 creep runs at tens of nm/s, so a local scan's later lines, shifted by the creep
 predicted since its first, err by the amplitude's error times that creep: the located
 position carries it, and a drift reference measured so depends on the amplitude's
-error through it. Its time constant too is learnt (``λ = δ ln τ``): the full scan's
-model needs each bootstrap reference's dependence on it (:func:`tau_sensitivity`); the
-filter computes its own.
+error through it. Its time constant's error ``λ = δ ln τ`` is learnt too, by the full
+scan's model and the filter (``CreepHistory.tau_sensitivity``), not here.
 """
 
 from __future__ import annotations
@@ -21,7 +20,6 @@ import numpy as np
 from nanoasm.drift.creep import creep_moves
 
 from .scan_drift import EPS
-from .scan_drift import tau_sensitivity as scan_tau_sensitivity
 
 
 def amplitude_error(est) -> tuple[float, float]:
@@ -32,19 +30,6 @@ def amplitude_error(est) -> tuple[float, float]:
     if est.filter.statics and est.filter.learn_creep and c > 0:
         return float(est.filter.x[-1]) / c, float(est.filter.P[-1, -1]) / (c * c)
     return float(est.scan.theta[EPS]), float(est.scan.cov[EPS, EPS])
-
-
-def tau_sensitivity(est, t: float) -> np.ndarray:
-    """How the creep of every move recorded so far depends at ``t`` on the time
-    constant's relative error ``λ = δ ln τ_c`` (nm per unit ``λ``, nominal creep):
-    ``c/ln 10 Σ s_i x_i/(1 + x_i)``, ``x_i`` the time since move ``i`` in units of ``τ_c``
-    (:func:`~nanoasm.executor.scan_drift.tau_sensitivity`)."""
-    p = est.params.creep
-    if not est.move_log:
-        return np.zeros(2)
-    times = np.array([m[0] for m in est.move_log], float)
-    steps = np.array([m[1] for m in est.move_log], float).reshape(-1, 2)
-    return scan_tau_sensitivity(t, times, steps, p.amplitude, p.tau)
 
 
 def compensation(est, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
@@ -85,4 +70,4 @@ def steps_along(est, anchor, xy, t, rests):
     return ks, np.diff(np.vstack([np.asarray(anchor, float).reshape(1, 2), xy[ks]]), axis=0)
 
 
-__all__ = ["amplitude_error", "compensation", "steps_along", "tau_sensitivity", "with_creep"]
+__all__ = ["amplitude_error", "compensation", "steps_along", "with_creep"]

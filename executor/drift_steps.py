@@ -20,16 +20,16 @@ from .engine import Msg
 from .edge_scan import edge_pattern
 from .landmarks import EDGE_SPACING
 from .relocalise import keep_track
-from .scan_drift import LAM
 from .scan_steps import locate, run_pattern
 
 #: Objects scanned again to find the drift velocity from the full scan's skew.
 BOOTSTRAP_OBJECTS = 4
-#: Twice as many where the creep time constant's uncertainty (its prior) moves one side of
-#: the area against the other by more than this (nm, 1σ: ``c σ_λ side / ln 10``, twice a
+#: Twice as many where the creep time constant's prior uncertainty moves one side of the
+#: area against the other by more than this (nm, 1σ: ``c σ_λ side / ln 10``, twice a
 #: located centre's own): its error offsets a reference in proportion to where it lies,
-#: which four references along the rows take for velocity (wide seed 8, 16 µm: λ -0.06 of
-#: a true -0.34 with four, -0.23 with eight); on a 4 µm area it is 3.5 nm, on 5 µm 4.3.
+#: which four references along the rows take for velocity (wide, 16 µm, seeds 1-10: λ at
+#: the run's end 0.10 from the truth with four, 0.06 with eight, medians); on a 4 µm area
+#: it is 3.5 nm, on 5 µm 4.3.
 TAU_SPREAD = 4.0
 #: Variance (nm²) of a component a bootstrap reference measures: the located centre's
 #: and the full scan's (2 nm each), and what the model leaves (the random walk, creep).
@@ -186,12 +186,10 @@ def _bootstrap_picks(ctx: RunContext, count: int) -> list[tuple[str, str, float]
 
 
 def _tau_spread(ctx: RunContext) -> float:
-    """How far (nm, 1σ) the creep time constant's uncertainty as the full scan's model
-    knows it (before the bootstrap: its prior) moves one side of the area against the
-    other: ``c σ_λ side / ln 10``."""
-    scan = ctx.drift.scan
-    return (ctx.drift.params.creep.amplitude * math.sqrt(max(float(scan.cov[LAM, LAM]), 0.0))
-            * max(ctx.belief.area) / math.log(10.0))
+    """How far (nm, 1σ) the creep time constant's prior uncertainty moves one side of the
+    area against the other: ``c σ_λ side / ln 10``."""
+    creep = ctx.drift.params.creep
+    return creep.amplitude * creep.tau_std * max(ctx.belief.area) / math.log(10.0)
 
 
 def unskewed_obstacles(obstacles, drift, row_time) -> tuple:
@@ -222,7 +220,7 @@ def bootstrap(ctx: RunContext):
     lines; the variance of a measured component is taken as :data:`BOOTSTRAP_VAR` plus the
     located position's own (which holds what the lines' creep compensation may err by).
     The model holds the creep's time constant's error too (``λ``, each row's dependence
-    on it :func:`~.creep_terms.tau_sensitivity`), which the filter then carries; on a wide
+    on it ``CreepHistory.tau_sensitivity``), which the filter then carries; on a wide
     area more references are scanned for it (:data:`TAU_SPREAD`).
     """
     drift = ctx.drift
@@ -240,7 +238,7 @@ def bootstrap(ctx: RunContext):
         if scanned is None:
             continue
         rows, t, seen = scanned
-        lam1 = creep_terms.tau_sensitivity(drift, t)    # the creep's time constant is known to ±30 %
+        lam1 = drift.filter.creep.tau_sensitivity(t - drift.epoch)   # every move's, per unit λ
         for n, z, tau1, tau0, creep1, var in rows:
             drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1)
         if seen is not None:

@@ -130,7 +130,7 @@ class Kalman:
             theta = self.scan.theta
             return (self.origin + self.scan.thermal_jacobian(tau) @ theta
                     + (1.0 + theta[EPS]) * self.filter.creep.offset(tau)
-                    + theta[LAM] * creep_terms.tau_sensitivity(self, t))
+                    + theta[LAM] * self.filter.creep.tau_sensitivity(tau))
         return self.origin + np.asarray(self.filter.offset(t).offset, float)
 
     def offset_cov(self, t: float) -> np.ndarray:

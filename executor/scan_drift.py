@@ -23,14 +23,14 @@ starts from a prior and is measured by Bayesian least squares: scanning a refere
 again at ``t`` gives its component along ``n`` of ``D(t) − D(τ)`` (the creep at ``t`` of
 every move so far), linear in ``θ`` (in ``λ`` too: ``∂creep/∂λ = c/ln 10 Σ s_i x_i/(1 +
 x_i)``, ``x_i`` the time since move ``i`` in units of ``τ_c``); the drift filter then
-carries ``ε`` as its learnt creep amplitude error and runs at the time constant learnt.
+carries ``ε`` as its learnt creep amplitude error and ``λ`` as a static of its state.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from nanoasm.drift.creep import creep_offset
+from nanoasm.drift.creep import creep_offset, creep_tau_sensitivity
 
 #: Prior standard deviation of the steady change of the drift velocity, nm/s².
 ACCELERATION_STD = 5e-5
@@ -42,16 +42,6 @@ KNOWN_VELOCITY_STD = 0.05
 PARAMETERS = 6
 #: Indices of the creep amplitude's relative error ``ε`` and of ``λ = δ ln τ_c`` in ``θ``.
 EPS, LAM = 4, 5
-
-
-def tau_sensitivity(t: float, move_times, move_steps, amplitude: float, tau: float) -> np.ndarray:
-    """``∂ creep_offset / ∂ ln τ_c`` (nm) at ``t`` of the moves: ``c/ln 10 Σ s_i x_i/(1 +
-    x_i)``, ``x_i = max(t − t_i, 0) / τ_c`` (:func:`~nanoasm.drift.creep.creep_offset`'s sign)."""
-    times = np.asarray(move_times, float).reshape(-1)
-    if times.size == 0:
-        return np.zeros(2)
-    x = np.maximum(t - times, 0.0) / tau
-    return amplitude / np.log(10.0) * ((x / (1.0 + x)) @ np.asarray(move_steps, float).reshape(-1, 2))
 
 
 class ScanDrift:
@@ -89,7 +79,7 @@ class ScanDrift:
         J = self.thermal_jacobian(tau)
         J[:, EPS] = self.creep_at(tau)
         a, tc = self.creep
-        J[:, LAM] = tau_sensitivity(self.epoch + tau, self.moves[:, 0], self.moves[:, 1:], a, tc)
+        J[:, LAM] = creep_tau_sensitivity(self.epoch + tau, self.moves[:, 0], self.moves[:, 1:], a, tc)
         return J
 
     @property
@@ -135,7 +125,8 @@ class ScanDrift:
         """A reference seen at ``τ0`` in the full scan and at ``τ1`` again: ``z`` (nm, the
         nominal creep taken out) is the component along unit ``n`` of ``D(τ1) − D(τ0)``,
         with variance ``var`` (nm²). ``creep1``: the nominal creep (nm) at ``τ1`` of every
-        move made so far, ``lam1`` its derivative by ``ln τ_c`` (:func:`tau_sensitivity`);
+        move made so far, ``lam1`` its derivative by ``ln τ_c``
+        (:func:`~nanoasm.drift.creep.creep_tau_sensitivity`);
         by default the scan's moves alone."""
         J1 = self.jacobian(tau1)
         if creep1 is not None:

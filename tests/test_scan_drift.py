@@ -10,10 +10,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from nanoasm.drift.creep import creep_offset
+from nanoasm.drift.creep import creep_offset, creep_tau_sensitivity
 from nanoasm.executor.edges import Edges
 from nanoasm.executor.relocalise import _window_offset
-from nanoasm.executor.scan_drift import EPS, LAM, PARAMETERS, ScanDrift, tau_sensitivity
+from nanoasm.executor.scan_drift import EPS, LAM, PARAMETERS, ScanDrift
 from nanoasm.executor.scan_lines import LineOutcome, LocalScanResult, ScanLine
 
 AMP, TAU = 0.01, 0.1
@@ -39,7 +39,7 @@ def _bootstrap(truth_eps: float, creep_std: float, seed: int = 3, truth_tau: flo
         drift = v * (t - tau0) + true_creep                         # D(t) - D(τ0)
         for e in np.eye(2):
             z = float(e @ (drift - nominal)) + rng.normal(0, 1.0)   # the nominal creep taken out
-            sd.measure(e, z, t, tau0, 1.0, creep1=nominal, lam1=tau_sensitivity(t, times, steps, AMP, TAU))
+            sd.measure(e, z, t, tau0, 1.0, creep1=nominal, lam1=creep_tau_sensitivity(t, times, steps, AMP, TAU))
     return sd, v
 
 
