@@ -26,10 +26,9 @@ import numpy as np
 
 from . import creep_terms
 from .context import RunContext
-from .progress_docs import PROGRESS, ProgressDoc
 from .engine import Msg
 from .registration import register
-from .scan_steps import locate
+from .scan_steps import locate, scan_window
 
 #: Pixels within this distance (nm) beyond an object's footprint are masked when it moved.
 MASK_MARGIN = 40.0
@@ -125,12 +124,7 @@ def relocalise(ctx: RunContext, why: str):
         if region[0] < lo[0] or region[1] < lo[1] or region[2] > hi[0] or region[3] > hi[1]:
             continue
         pixels = max(16, int(round((x1 - x0) / image.pixel_size)))
-        scan = yield Msg("full_scan", (pixels, region))
-        t_end = yield Msg("clock")
-        ctx.ledger.times["local_scan"] += t_end - t
-        ctx.ledger.counts["local_scans"] += 1
-        yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"relocalisation window {k + 1}, {pixels} x {pixels} "
-                                                               f"px, {t_end - t:.1f} s")))
+        scan, t_end = yield from scan_window(ctx, pixels, region, f"relocalisation window {k + 1}")
         window = replace(scan, origin=(scan.origin[0] - off[0], scan.origin[1] - off[1]))
         reg = register(image, window, reference_mask=_mask(image, then), moving_mask=_mask(window, now))
         if not reg.ok:

@@ -44,7 +44,7 @@ from .drift_steps import take_reference
 from .engine import Msg
 from .progress_docs import PROGRESS, ProgressDoc
 from .relocalise import keep_track, taken
-from .scan_steps import locate
+from .scan_steps import locate, scan_window
 
 #: Substrate surveyed beyond a slot's footprint, nm: a push gone astray leaves its object
 #: and the neighbours it shoved within a few hundred nm.
@@ -244,12 +244,7 @@ def _survey_window(ctx: RunContext, window, k: int, tip_radius: float, sought: s
         return
     x1, y1 = x0 + side, y0 + side
     pixels = max(16, int(round(side / pixel)))
-    scan = yield Msg("full_scan", (pixels, (float(x0), float(y0), float(x1), float(y1))))
-    t1 = yield Msg("clock")
-    ctx.ledger.times["local_scan"] += t1 - t0
-    ctx.ledger.counts["local_scans"] += 1
-    yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"survey window {k}, {pixels} x {pixels} "
-                                                           f"px, {t1 - t0:.1f} s")))
+    scan, t1 = yield from scan_window(ctx, pixels, (x0, y0, x1, y1), f"survey window {k}")
     env = identify(scan, tip_radius=tip_radius)
     corner, line_time = np.asarray(env.origin, float), (t1 - t0) / pixels
 

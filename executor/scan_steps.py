@@ -20,7 +20,9 @@ from .context import RunContext
 from .engine import Msg
 from .association import Candidate, associate, sighting
 from .progress_docs import PROGRESS, ProgressDoc
+from .apex_check import CROWDED, ROUND, image_check
 from .local_scan import particle_after, particle_before, rod_after, rod_before
+from .scan_lines import LocalScanResult
 from .lost_search import find_lost_particle
 from .motion_steps import approach
 
@@ -115,6 +117,19 @@ def line_doc(ctx: RunContext, a, b, heights, t: float) -> dict:
 DIRECTIONS = tuple(22.5 * k for k in range(8))
 
 
+def scan_window(ctx: RunContext, pixels: int, region, what: str):
+    """A raster image of ``region`` (scanner frame: x0, y0, x1, y1) of ``pixels`` lines
+    of ``pixels`` (plan stub), counted as a local scan and reported as ``what``; returns
+    the image and the time it ended."""
+    t0 = yield Msg("clock")
+    scan = yield Msg("full_scan", (pixels, tuple(float(v) for v in region)))
+    t1 = yield Msg("clock")
+    ctx.ledger.times["local_scan"] += t1 - t0
+    ctx.ledger.counts["local_scans"] += 1
+    yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"{what}, {pixels} x {pixels} px, {t1 - t0:.1f} s")))
+    return scan, t1
+
+
 def clear_direction(ctx: RunContext, at, half: float, exclude=()) -> np.ndarray:
     """The direction of a particle's first scan line through ``at`` (layout frame) whose
     cross (that line and the perpendicular one, ``half`` nm to each side) stays farthest
@@ -172,6 +187,10 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = 
     if res.found and not (yield from identify(ctx, obj_id, res, np.asarray(res.centre, float) - off, gate,
                                               resolve=resolve)):
         res = replace(res, found=False)
+    if not res.found and o.kind != "rod" and any(ln.edges.reason in CROWDED for ln in res.lines):
+        seen = yield from _locate_by_image(ctx, obj_id, r_max, gate, resolve)
+        if seen is not None:
+            return seen
     if not res.found and not widen:
         yield Msg("event", (f"{obj_id} not found within {r_max:.0f} nm",), {"level": "warn"})
         return None
@@ -190,11 +209,39 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = 
     return _pose(o, np.asarray(res.centre, float), res.angle), np.asarray(cov, float), t, res
 
 
+def _locate_by_image(ctx: RunContext, obj_id: str, r_max: float, gate: float, resolve: bool):
+    """A particle whose lines ran into a neighbour (a touching one, or one the belief
+    does not know of where a line ends), looked for in a small image (plan stub): the
+    round apex nearest where it is believed, within ``gate``, associated as a line's
+    sighting is (:func:`identify`). Returns what :func:`locate` does, or None."""
+    o = ctx.belief[obj_id]
+    believed = ctx.position(obj_id)
+    got = yield from image_check(ctx, believed, o.diameter, r_max, obj_id)
+    if got is None:
+        return None
+    apices, pixels = got
+    near = [(a, at, t) for a, at, t in apices if a.roundness >= ROUND and math.dist(at, believed) <= gate]
+    if not near:
+        yield Msg("event", (f"{obj_id}: its lines ran into a neighbour; an image of {pixels} x {pixels} px "
+                            f"shows no particle within {gate:.0f} nm",), {"level": "warn"})
+        return None
+    a, at, t = near[0]
+    cov = np.eye(2) * a.std ** 2
+    res = LocalScanResult("particle_image", True, "found", centre=tuple(np.asarray(at) + ctx.offset(t)), cov=cov)
+    ctx.scan_ref, ctx.scan_comp, ctx.scan_creep = t, np.zeros((2, 2)), []    # the apex's row is its time
+    yield Msg("event", (f"{obj_id}: its lines ran into a neighbour; an image of {pixels} x {pixels} px shows a "
+                        f"particle {math.dist(at, believed):.1f} nm from where it was believed, {a.height:.0f} nm high",))
+    if not (yield from identify(ctx, obj_id, res, at, gate, resolve=resolve, height=a.height)):
+        return None
+    return _pose(o, np.asarray(res.centre, float), None), cov, t, res
+
+
 #: Objects farther than this (nm) from a sighting are not compared with it.
 ASSOCIATION_REACH = 1000.0
 
 
-def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=None, resolve: bool = True):
+def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=None, resolve: bool = True,
+             height: float | None = None):
     """Whether the object a located scan result ``res`` shows at ``at`` (layout frame) is
     ``obj_id`` (believed at ``expected``, by default where the belief puts it, within
     ``gate`` nm): :func:`~.association.associate` against every believed object near.
@@ -203,11 +250,14 @@ def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=Non
     are believed (``resolve``): one found elsewhere is not what was seen (and its
     sighting is kept); one found at ``at`` is. Unresolved, the sighting goes to the
     candidate it lies nearer to, relative to their gates. A sighting no believed object
-    explains is added to the belief as a new object. Events say which happened."""
+    explains is added to the belief as a new object. Events say which happened.
+    ``height``: the sighting's height (nm) where ``res`` has no lines to tell it (an
+    image's apex)."""
     t = ctx.scan_ref if ctx.scan_ref is not None else (yield Msg("clock"))
     at = np.asarray(at, float)
     cov = res.cov if res.cov is not None else np.eye(2) * DEFAULT_COV
-    height, noise = sighting(res)
+    seen_height, noise = sighting(res)
+    height = seen_height if height is None else height
     o = ctx.belief[obj_id]
     me = Candidate(obj_id, tuple(ctx.position(obj_id) if expected is None else expected), gate, o.diameter)
     others = [Candidate(oid, tuple(ctx.position(oid)), ctx.r_max(t, oid), b.diameter)

@@ -10,7 +10,10 @@ and length); otherwise ``missed`` when an object was assigned to it, else ``unfi
 object found in its slot is observed there (the belief ends as the scans saw it). What
 a particle slot's lines find on a believed rod's body is that rod, not a particle (its
 thickness would pass the size check); a line that a neighbour's edge cut is tried again,
-turned, and a sighting wider than a sphere of its height is no particle.
+turned, and a sighting wider than a sphere of its height is no particle. Where a
+neighbour the belief does not know of (an object pushed astray and lost) still runs into
+the lines, so that they find nothing or something out of the slot, a small image of the
+slot tells: each particle's apex, fitted to a fraction of a pixel (:mod:`.apex_check`).
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ import numpy as np
 
 from nanoasm.cad.layout import Layout
 
+from .apex_check import CROWDED, ROUND, image_check
 from .context import RunContext
 from .drift_steps import suspect_drift
 from .engine import Msg
@@ -143,18 +147,32 @@ def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
         res = yield from run_pattern(ctx, particle_before(at, target.diameter, reach, direction=turned,
                                                           options=opts))
     state, error = ("missed" if obj is not None else "unfilled"), None
-    if not res.found and obj is not None:
-        yield Msg("event", (f"slot {target.id}: the check scan did not find {obj}: {res.reason}",),
-                  {"level": "warn"})
+    sighting = None
     if res.found:
         t_scan = ctx.scan_ref if ctx.scan_ref is not None else t
-        centre = np.asarray(res.centre, float) - ctx.offset(t_scan)
+        sighting = (np.asarray(res.centre, float) - ctx.offset(t_scan), t_scan, res.cov,
+                    _size_ok(target, res, tol), target.kind == "rod" or _round(res))
+    crowded = any(ln.edges.reason in CROWDED for ln in res.lines)
+    if target.kind != "rod" and (crowded if sighting is None else
+                                 not sighting[4] or crowded and math.dist(sighting[0], target.at) > tol.position):
+        # a neighbour the belief does not know of ran into the lines: they found nothing,
+        # stepped aside onto the neighbour, or took two bumps for one (wider than a
+        # particle: a rod's body crossing the slot is too). An image of the slot.
+        why = (f"its lines ran into a neighbour ({res.reason})" if sighting is None else
+               "its lines found something wider than a particle" if not sighting[4] else
+               "its lines ran into a neighbour and found something out of the slot")
+        sighting = (yield from _by_image(ctx, target, obj, reach, tol, why)) or sighting
+    if sighting is None and obj is not None:
+        yield Msg("event", (f"slot {target.id}: the check scan did not find {obj}: {res.reason}",),
+                  {"level": "warn"})
+    if sighting is not None:
+        centre, t_scan, cov, size_ok, round_ok = sighting
         error = math.dist(centre, target.at)
-        good = error <= tol.position and _size_ok(target, res, tol)
+        good = error <= tol.position and size_ok
         if target.kind == "rod":
             good = good and res.angle is not None and _angle_error(res.angle, target.angle) <= tol.angle
         rod = _rod_there(ctx, centre) if good and target.kind != "rod" else None
-        if good and target.kind != "rod" and rod is None and not _round(res):
+        if good and target.kind != "rod" and rod is None and not round_ok:
             good = False
             yield Msg("event", (f"slot {target.id}: the object found is wider across than a particle "
                                 f"of its height: an elongated object",), {"level": "warn"})
@@ -166,6 +184,29 @@ def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
         if rod is None and (good or error > tol.position) and obj is not None \
                 and obj in ctx.belief.objects and obj not in ctx.belief.lost \
                 and math.dist(ctx.belief[obj].at, centre) <= reach + tol.position:
-            cov = res.cov if res.cov is not None else np.eye(2) * 4.0
+            cov = cov if cov is not None else np.eye(2) * 4.0
             ctx.observe(obj, centre, t_scan, cov, angle=res.angle if target.kind == "rod" else None)
     return SlotVerdict(target.id, obj, state, error)
+
+
+def _by_image(ctx: RunContext, target, obj: str | None, reach: float, tol, why: str) -> Any:
+    """A particle slot's check by a small image (:mod:`.apex_check`), when its lines
+    could not tell (``why``; plan stub): (centre in the layout frame, time, covariance,
+    size ok, round) of the round apex nearest the slot (a ridge's where there is none),
+    or None where no apex lies within reach."""
+    got = yield from image_check(ctx, target.at, target.diameter, reach, f"slot {target.id}")
+    if got is None:
+        return None
+    apices, pixels = got
+    near = [(a, at, t) for a, at, t in apices if math.dist(at, target.at) <= reach]
+    if not near:
+        yield Msg("event", (f"slot {target.id}: {why}; an image of {pixels} x {pixels} px shows no "
+                            f"particle within {reach:.0f} nm",),
+                  {"level": "warn"})
+        return None
+    a, at, t = min(near, key=lambda n: (n[0].roundness < ROUND, math.dist(n[1], target.at)))
+    size_ok = abs(a.height - target.diameter) <= tol.size * target.diameter
+    yield Msg("event", (f"slot {target.id}: {why}; an image of {pixels} x {pixels} px shows "
+                        + ("a particle" if a.roundness >= ROUND else "a ridge, no particle,")
+                        + f" {math.dist(at, target.at):.1f} nm from it, {a.height:.0f} nm high",))
+    return at, t, np.eye(2) * a.std ** 2, size_ok, a.roundness >= ROUND
