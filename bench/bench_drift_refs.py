@@ -17,7 +17,7 @@ the truth; the executor never does):
 
 Plus the drift-jump case: ``allpushed`` with a 300 nm jump injected 150 s after the
 full scan (which takes a second a 10 nm row: 600 s), in the middle of the pushes (the runs
-end 900-1300 s; ``tests/test_repair.py`` jumps at the same 750 s).
+end 1050-1560 s; ``tests/test_repair.py`` jumps at the same 750 s).
 
     python bench/bench_drift_refs.py                      # 8 families x 10 seeds -> bench/RESULTS_drift_refs.md
     python bench/bench_drift_refs.py --families device --seeds 1-3 --out /tmp/x.md

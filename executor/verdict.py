@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -40,11 +40,16 @@ __all__ = ["STATES", "SlotVerdict", "check_slots"]
 #: that it runs into the neighbours of a packed array (150 nm apart).
 CHECK_MARGIN = 20.0
 
+def _height_ok(target, height: float, tol) -> bool:
+    """Whether a sighting's height is the slot's (a particle's diameter; a rod's thickness)."""
+    return abs(height - target.diameter) <= tol.size * target.diameter
+
+
 def _size_ok(target, res, tol) -> bool:
-    """Whether the object a check scan found is of the slot's size: its height (a
-    particle's diameter; a rod's thickness) and a rod's length."""
+    """Whether the object a check scan found is of the slot's size: its height and a
+    rod's length."""
     peaks = [ln.edges.peak for ln in res.lines if ln.edges.found and ln.edges.peak is not None]
-    if peaks and abs(max(peaks) - target.diameter) > tol.size * target.diameter:
+    if peaks and not _height_ok(target, max(peaks), tol):
         return False
     if target.kind == "rod" and res.length is not None:
         return abs(res.length - target.length) <= tol.size * target.length + target.diameter
@@ -89,6 +94,17 @@ def _round(res) -> bool:
     lowest = min(e.level for e in found)
     sphere = 2.0 * math.sqrt(max(r * r - (lowest - r + TIP_ALLOWANCE) ** 2, 0.0))
     return widest <= ROUND_SLACK * sphere
+
+
+class _Sighting(NamedTuple):
+    """What a slot's check saw: the centre (layout frame) at time ``t``, its covariance,
+    whether its size is the slot's and whether it is round (a particle, not a ridge)."""
+
+    centre: np.ndarray
+    t: float
+    cov: np.ndarray | None
+    size_ok: bool
+    round: bool
 
 
 def _angle_error(a: float, b: float) -> float:
@@ -150,18 +166,18 @@ def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
     sighting = None
     if res.found:
         t_scan = ctx.scan_ref if ctx.scan_ref is not None else t
-        sighting = (np.asarray(res.centre, float) - ctx.offset(t_scan), t_scan, res.cov,
-                    _size_ok(target, res, tol), target.kind == "rod" or _round(res))
+        sighting = _Sighting(np.asarray(res.centre, float) - ctx.offset(t_scan), t_scan, res.cov,
+                             _size_ok(target, res, tol), target.kind == "rod" or _round(res))
     crowded = any(ln.edges.reason in CROWDED for ln in res.lines)
     if target.kind != "rod" and (crowded if sighting is None else
-                                 not sighting[4] or crowded and math.dist(sighting[0], target.at) > tol.position):
+                                 not sighting.round or crowded and math.dist(sighting.centre, target.at) > tol.position):
         # a neighbour the belief does not know of ran into the lines: they found nothing,
         # stepped aside onto the neighbour, or took two bumps for one (wider than a
         # particle: a rod's body crossing the slot is too). An image of the slot.
         why = (f"its lines ran into a neighbour ({res.reason})" if sighting is None else
-               "its lines found something wider than a particle" if not sighting[4] else
+               "its lines found something wider than a particle" if not sighting.round else
                "its lines ran into a neighbour and found something out of the slot")
-        sighting = (yield from _by_image(ctx, target, obj, reach, tol, why)) or sighting
+        sighting = (yield from _by_image(ctx, target, reach, tol, why)) or sighting
     if sighting is None and obj is not None:
         yield Msg("event", (f"slot {target.id}: the check scan did not find {obj}: {res.reason}",),
                   {"level": "warn"})
@@ -189,7 +205,7 @@ def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
     return SlotVerdict(target.id, obj, state, error)
 
 
-def _by_image(ctx: RunContext, target, obj: str | None, reach: float, tol, why: str) -> Any:
+def _by_image(ctx: RunContext, target, reach: float, tol, why: str) -> Any:
     """A particle slot's check by a small image (:mod:`.apex_check`), when its lines
     could not tell (``why``; plan stub): (centre in the layout frame, time, covariance,
     size ok, round) of the round apex nearest the slot (a ridge's where there is none),
@@ -205,8 +221,8 @@ def _by_image(ctx: RunContext, target, obj: str | None, reach: float, tol, why: 
                   {"level": "warn"})
         return None
     a, at, t = min(near, key=lambda n: (n[0].roundness < ROUND, math.dist(n[1], target.at)))
-    size_ok = abs(a.height - target.diameter) <= tol.size * target.diameter
+    size_ok = _height_ok(target, a.height, tol)
     yield Msg("event", (f"slot {target.id}: {why}; an image of {pixels} x {pixels} px shows "
                         + ("a particle" if a.roundness >= ROUND else "a ridge, no particle,")
                         + f" {math.dist(at, target.at):.1f} nm from it, {a.height:.0f} nm high",))
-    return at, t, np.eye(2) * a.std ** 2, size_ok, a.roundness >= ROUND
+    return _Sighting(at, t, np.eye(2) * a.std ** 2, size_ok, a.roundness >= ROUND)
