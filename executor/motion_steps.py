@@ -18,6 +18,7 @@ from nanoasm.planner import Operation
 from nanoasm.world.cantilever import Cantilever
 
 from .contact_angle import PushSignals
+from .contact_load import PRELOAD_CAP
 from .context import RunContext
 from .dac import plan_dac
 from .progress_docs import PROGRESS, ProgressDoc
@@ -27,8 +28,6 @@ from .trajectory import PUSH, TRAVEL, operation
 
 #: A scan line starting farther than this (nm) from the tip is preceded by a travel.
 APPROACH = 300.0
-#: A preload raised for an object the tip slipped over stays within this share of the Z range.
-PRELOAD_CAP = 0.45
 #: Every this many samples of a streamed chunk go to the run log.
 DAC_LOG_EVERY = 50
 
@@ -93,8 +92,9 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
                 lead: float | None = None):
     """Travel to the push, lower, push, lift; watching the signals. Returns the verdict.
 
-    An object the tip slipped over before is pushed with ``preload_factor`` times the
-    preload (seed eq. 4.7: a larger normal force keeps the tip down), up to
+    The tip is pressed with ``preload_factor`` times the instrument's preload (seed eq.
+    4.7: the normal force that keeps the tip down on the object, :mod:`.contact_load`,
+    more after a slip over it), up to
     :data:`PRELOAD_CAP` of the Z range. With ``lead`` (nm the tip slides in contact
     before it meets the object) the verdict says where the object sat on the tip at the
     end (:mod:`.contact_angle`)."""
@@ -149,6 +149,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     ctx.ledger.times["travel"] += n_other / cfg.sample_rate
     length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
     towards = f"towards {op.target}" if op.target is not None else "out of the way"
-    yield Msg("emit", (PROGRESS, ProgressDoc("push", f"{op.object} {towards}, {length:.0f} nm of tip path: "
-                                                     f"{verdict.status} (peak force {verdict.peak_force:.0f} nN)")))
+    yield Msg("emit", (PROGRESS, ProgressDoc("push", f"{op.object} {towards}, {length:.0f} nm of tip path at "
+                                                     f"{cfg.preload * lever.spring_constant:.0f} nN: {verdict.status} "
+                                                     f"(peak force {verdict.peak_force:.0f} nN)")))
     return verdict
