@@ -102,7 +102,9 @@ class ExecOptions:
         line only before the last leg and where the angle is too uncertain. ``"contact"``
         takes 20-36 % less instrument time per filled slot on the families of long pushes
         (allpushed 41.3 -> 32.9 s, wide 70.5 -> 45.0 s) and fills as many slots
-        (``bench/RESULTS_pushes.md``).
+        (``bench/RESULTS_pushes.md``). Its legs are tracked: the angle is read as the tip
+        pushes and a leg stopped once the particle slides far round the tip, so the
+        legs before the last may run longer (:mod:`.push_legs`).
     drift_q : float
         Process noise of the drift filter: random walk of the drift velocity, nm²/s³.
     drift_q_offset : float
