@@ -17,13 +17,13 @@ import numpy as np
 from nanoasm.planner import Operation
 from nanoasm.world.cantilever import Cantilever
 
-from .contact_angle import PushSignals
+from .contact_angle import MIN_FORCE, PushSignals
 from .contact_load import PRELOAD_CAP
 from .context import RunContext
 from .dac import plan_dac
 from .progress_docs import PROGRESS, ProgressDoc
 from .engine import Msg
-from .monitor import PushMonitor
+from .monitor import PushMonitor, Verdict
 from .trajectory import PUSH, TRAVEL, operation
 
 #: A scan line starting farther than this (nm) from the tip is preceded by a travel.
@@ -92,7 +92,8 @@ def dac_doc(ctx: RunContext, codes, kind, block, every: int = DAC_LOG_EVERY) -> 
 
 
 def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_factor: float = 1.0,
-                lead: float | None = None, track: float | None = None, blind: float = math.inf):
+                lead: float | None = None, track: float | None = None, blind: float = math.inf,
+                capture: float = 90.0):
     """Travel to the push, lower, push, lift; watching the signals. Returns the verdict.
 
     The tip is pressed with ``preload_factor`` times the instrument's preload (seed eq.
@@ -104,7 +105,9 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     after every chunk of :data:`TRACK_CHUNK` samples, and the push is stopped and the tip
     lifted once it passes ``track``: the object is sliding off the tip (the verdict's
     ``stopped`` says where the tip was); so it is too where the tip has gone ``blind`` nm
-    from the path's start with no angle to read."""
+    from the path's start with no angle to read. Stopped with nothing pressing on the tip
+    (less than :data:`~.contact_angle.MIN_FORCE` beyond its own friction), or at an angle
+    beyond ``capture`` (the object is not carried), the push has lost its object: "slipped"."""
     cfg = ctx.config
     if preload_factor != 1.0:
         cfg = replace(cfg, preload=min(cfg.preload * preload_factor, PRELOAD_CAP * cfg.z_range))
@@ -122,6 +125,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     tracked = track is not None and kept is not None
     path = np.asarray(op.tip_path, float)
     stop_at, stop_angle = None, None    # where a tracked push was stopped short, and its angle
+    pressing = True                     # the last chunk's samples pressed on an object
     n_push = n_other = 0
     # creep follows the path in pieces as it goes, and its moves end where XY rests
     rests = dac.profile.rests()
@@ -141,6 +145,8 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
             v = monitor.check(block.s_n[pushing], block.s_l[pushing], xy[pushing])
             verdict = v if v.failed else None
             if tracked and verdict is None:
+                f_n, f_l = monitor.forces(block.s_n[pushing], block.s_l[pushing], xy[pushing])
+                pressing = float(np.mean(np.abs(f_l) - monitor.friction * np.maximum(f_n, 0.0))) >= MIN_FORCE
                 angle = kept.angle(monitor.compensated, monitor.level, path[-1] - path[-2], cfg.scan_angle, lever)
                 end = chunk.first + len(chunk) - 1
                 if angle is not None and abs(angle.angle) >= track:
@@ -157,7 +163,10 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     ctx.ledger.times["mode_switch"] += max(t_end - t0 - (n_push + n_other) / cfg.sample_rate, 0.0)
     if verdict is None:
         verdict = monitor.finish()
-    if stop_at is not None:             # the object sliding off: stopped where the tip was
+    if stop_at is not None and (stop_angle is None and not pressing
+                                or stop_angle is not None and abs(stop_angle.angle) >= capture):
+        verdict = Verdict("slipped", None, verdict.peak_force)      # the object is not on the tip
+    elif stop_at is not None:           # the object sliding off: stopped where the tip was
         at = dac.profile.sample(np.array([stop_at]))[0][0, :2]
         verdict = replace(verdict, contact=stop_angle, stopped=(float(at[0]), float(at[1])))
     elif kept is not None and not verdict.failed:

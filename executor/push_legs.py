@@ -195,7 +195,8 @@ def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, t
             return verdict, legs, op
         # blind beyond the model's own length: no angle to say the particle is still on the tip
         blind = leg_lead + length / TRACK_REACH if track is not None else math.inf
-        verdict = yield from stream_push(ctx, leg_op, lever, preload, leg_lead if contact else None, track, blind)
+        verdict = yield from stream_push(ctx, leg_op, lever, preload, leg_lead if contact else None, track, blind,
+                                         opts.capture_angle)
         legs += 1
         cut = verdict.stopped is not None
         if verdict.failed or (last and not cut):

