@@ -35,12 +35,14 @@ class Verdict:
     """``status``: "pushing" (all well so far), "slipped", "stuck" or "no_contact";
     ``index``: first sample of the failure within the block; ``peak_force`` nN;
     ``contact``: where the object sat on the tip at the push's end
-    (:class:`~.contact_angle.ContactAngle`), when measured."""
+    (:class:`~.contact_angle.ContactAngle`), when measured; ``stopped``: where the tip
+    was (layout frame nm) when a tracked push was stopped short on its contact angle."""
 
     status: str
     index: int | None = None
     peak_force: float = 0.0
     contact: object | None = None
+    stopped: tuple[float, float] | None = None
 
     @property
     def failed(self) -> bool:

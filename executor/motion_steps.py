@@ -17,20 +17,22 @@ import numpy as np
 from nanoasm.planner import Operation
 from nanoasm.world.cantilever import Cantilever
 
-from .contact_angle import PushSignals
+from .contact_angle import MIN_FORCE, PushSignals
+from .contact_load import PRELOAD_CAP
 from .context import RunContext
 from .dac import plan_dac
 from .progress_docs import PROGRESS, ProgressDoc
 from .engine import Msg
-from .monitor import PushMonitor
+from .monitor import PushMonitor, Verdict
 from .trajectory import PUSH, TRAVEL, operation
 
 #: A scan line starting farther than this (nm) from the tip is preceded by a travel.
 APPROACH = 300.0
-#: A preload raised for an object the tip slipped over stays within this share of the Z range.
-PRELOAD_CAP = 0.45
 #: Every this many samples of a streamed chunk go to the run log.
 DAC_LOG_EVERY = 50
+#: DAC samples per chunk of a tracked push (its contact angle is read after each): 0.1 s
+#: at the default 1 kHz, 20 nm at 200 nm/s.
+TRACK_CHUNK = 100
 
 
 def travel_to(ctx: RunContext, xy):
@@ -90,14 +92,22 @@ def dac_doc(ctx: RunContext, codes, kind, block, every: int = DAC_LOG_EVERY) -> 
 
 
 def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_factor: float = 1.0,
-                lead: float | None = None):
+                lead: float | None = None, track: float | None = None, blind: float = math.inf,
+                capture: float = 90.0):
     """Travel to the push, lower, push, lift; watching the signals. Returns the verdict.
 
-    An object the tip slipped over before is pushed with ``preload_factor`` times the
-    preload (seed eq. 4.7: a larger normal force keeps the tip down), up to
+    The tip is pressed with ``preload_factor`` times the instrument's preload (seed eq.
+    4.7: the normal force that keeps the tip down on the object, :mod:`.contact_load`,
+    more after a slip over it), up to
     :data:`PRELOAD_CAP` of the Z range. With ``lead`` (nm the tip slides in contact
     before it meets the object) the verdict says where the object sat on the tip at the
-    end (:mod:`.contact_angle`)."""
+    end (:mod:`.contact_angle`). With ``track`` (degrees, and ``lead``) that angle is read
+    after every chunk of :data:`TRACK_CHUNK` samples, and the push is stopped and the tip
+    lifted once it passes ``track``: the object is sliding off the tip (the verdict's
+    ``stopped`` says where the tip was); so it is too where the tip has gone ``blind`` nm
+    from the path's start with no angle to read. Stopped with nothing pressing on the tip
+    (less than :data:`~.contact_angle.MIN_FORCE` beyond its own friction), or at an angle
+    beyond ``capture`` (the object is not carried), the push has lost its object: "slipped"."""
     cfg = ctx.config
     if preload_factor != 1.0:
         cfg = replace(cfg, preload=min(cfg.preload * preload_factor, PRELOAD_CAP * cfg.z_range))
@@ -112,10 +122,14 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
                           friction=ctx.options.substrate_friction)
     verdict = None
     kept = None if lead is None else PushSignals(lead)
+    tracked = track is not None and kept is not None
+    path = np.asarray(op.tip_path, float)
+    stop_at, stop_angle = None, None    # where a tracked push was stopped short, and its angle
+    pressing = True                     # the last chunk's samples pressed on an object
     n_push = n_other = 0
     # creep follows the path in pieces as it goes, and its moves end where XY rests
     rests = dac.profile.rests()
-    for chunk in dac.chunks(ctx.options.chunk):
+    for chunk in dac.chunks(min(ctx.options.chunk, TRACK_CHUNK) if tracked else ctx.options.chunk):
         block = yield Msg("write", (chunk.codes,))
         yield Msg("emit", ("dac", dac_doc(ctx, chunk.codes, chunk.kind, block)))
         lifted = chunk.kind == TRAVEL                              # travel: free air
@@ -130,25 +144,43 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
         if pushing.any():
             v = monitor.check(block.s_n[pushing], block.s_l[pushing], xy[pushing])
             verdict = v if v.failed else None
+            if tracked and verdict is None:
+                f_n, f_l = monitor.forces(block.s_n[pushing], block.s_l[pushing], xy[pushing])
+                pressing = float(np.mean(np.abs(f_l) - monitor.friction * np.maximum(f_n, 0.0))) >= MIN_FORCE
+                angle = kept.angle(monitor.compensated, monitor.level, path[-1] - path[-2], cfg.scan_angle, lever)
+                end = chunk.first + len(chunk) - 1
+                if angle is not None and abs(angle.angle) >= track:
+                    stop_at, stop_angle = end, angle
+                elif angle is None and math.dist(dac.profile.sample(np.array([end]))[0][0, :2], path[0]) > blind:
+                    stop_at = end
         here = rests[(rests >= chunk.first) & (rests < chunk.first + len(chunk))] - chunk.first
-        _moved(ctx, current, chunk.codes, block.t, here if verdict is None else np.append(here, len(chunk) - 1))
-        if verdict is not None:         # stopped here: lifted where it is
+        stop = verdict is not None or stop_at is not None
+        _moved(ctx, current, chunk.codes, block.t, np.append(here, len(chunk) - 1) if stop else here)
+        if stop:                        # stopped here: lifted where it is
             break
     # what the instrument took beyond the samples streamed: the approach into contact
     t_end = yield Msg("clock")
     ctx.ledger.times["mode_switch"] += max(t_end - t0 - (n_push + n_other) / cfg.sample_rate, 0.0)
     if verdict is None:
         verdict = monitor.finish()
-    path = np.asarray(op.tip_path, float)
-    if kept is not None and not verdict.failed:
+    if stop_at is not None and (stop_angle is None and not pressing
+                                or stop_angle is not None and abs(stop_angle.angle) >= capture):
+        verdict = Verdict("slipped", None, verdict.peak_force)      # the object is not on the tip
+    elif stop_at is not None:           # the object sliding off: stopped where the tip was
+        at = dac.profile.sample(np.array([stop_at]))[0][0, :2]
+        verdict = replace(verdict, contact=stop_angle, stopped=(float(at[0]), float(at[1])))
+    elif kept is not None and not verdict.failed:
         verdict = replace(verdict, contact=kept.angle(monitor.compensated, monitor.level, path[-1] - path[-2],
                                                       cfg.scan_angle, lever))
-    if verdict.failed:
+    if verdict.failed or stop_at is not None:
         yield from lift(ctx)
     ctx.ledger.times["push"] += n_push / cfg.sample_rate
     ctx.ledger.times["travel"] += n_other / cfg.sample_rate
     length = float(np.linalg.norm(np.diff(path, axis=0), axis=1).sum())
     towards = f"towards {op.target}" if op.target is not None else "out of the way"
-    yield Msg("emit", (PROGRESS, ProgressDoc("push", f"{op.object} {towards}, {length:.0f} nm of tip path: "
-                                                     f"{verdict.status} (peak force {verdict.peak_force:.0f} nN)")))
+    short = "" if stop_at is None else ", stopped short: no contact angle" if stop_angle is None else \
+        f", stopped short with the object {stop_angle.angle:+.0f}° round the tip"
+    yield Msg("emit", (PROGRESS, ProgressDoc("push", f"{op.object} {towards}, {length:.0f} nm of tip path at "
+                                                     f"{cfg.preload * lever.spring_constant:.0f} nN: {verdict.status} "
+                                                     f"(peak force {verdict.peak_force:.0f} nN){short}")))
     return verdict

@@ -24,6 +24,25 @@ particle at ``r_c`` from the tip's end along the contact normal, to within
 parallel pushing, Xu, Kalantari and Qian) measures it; the longitudinal one is where the
 tip stopped, the particle against it. The lateral deviations measure the particle's own
 direction error (the same all along one push), and the next legs are aimed to cancel it.
+
+Tracked legs (``"contact"``): the contact angle is read as the tip pushes, chunk by chunk
+(:func:`~.motion_steps.stream_push`), and a leg is stopped and the tip lifted once the
+particle has slid :data:`TRACK_STOP` of the capture angle round the tip, or once the tip
+has gone the model's length with no angle to read. A leg may then run :data:`TRACK_REACH`
+times the model's length, and once the particle's turn ``e`` is measured, about the
+distance ``r_c sin(α_stop) / tan e`` over which it slides to the stop angle: where the
+model must allow three sigmas of an unknown turn, the angle says when it has happened.
+A particle steered on its line cannot be held centred on the tip: it moves along the
+tip's motion turned by ``e`` and so slides round the tip at ``sin e / r_c`` radians per
+nm whatever the tip's heading; the legs re-centre it. Against the simulated physics (a
+5 µm push of a particle 5 nm off the believed line, 1.5° of its own turn): 7 legs where
+legs of the model's length take 11, within 10 nm of its line; a particle turning 8°
+where 2° (1σ) is assumed is stopped on the tip and brought in, where a leg of the
+model's length loses it (``tests/test_push_legs.py``).
+
+As the particle slides round the tip it falls behind the tip's end by ``r_c (1 − cos α)``;
+each leg is lengthened by what its predicted slide ``α = ℓ sin e / r_c`` costs (4 nm at
+the end of a 300 nm leg at 4°).
 """
 
 from __future__ import annotations
@@ -56,6 +75,17 @@ TIP_STD = 3.0
 #: Least lead (nm) of a leg after the first: the particle's place along the push is known
 #: worst (10-20 nm), and the contact angle needs the tip to slide before it meets it.
 LEG_LEAD = 40.0
+#: Tracked legs (``between_legs = "contact"``): a leg runs up to this many times the
+#: model's length (:func:`leg_length`, three sigmas of an unknown turn)...
+TRACK_REACH = 3.0
+#: ...and is stopped once the contact angle passes this share of the capture angle; once a
+#: leg has measured the particle's turn, the next runs this many times the distance over
+#: which that turn slides it to the stop angle.
+TRACK_STOP = 0.7
+TRACK_SLACK = 1.25
+#: Legs of one push beyond one per :data:`MIN_LEG` of its length: a bound, never reached
+#: by a push that gets on.
+MAX_LEGS = 5
 
 
 def leg_length(radius: float, tip_radius: float, lateral_std: float, heading_std: float,
@@ -108,69 +138,99 @@ def across(ctx: RunContext, at, u, diameter: float, reach: float):
     return lateral, outcome.edges.centre_std or 1.0
 
 
-def _from_contact(contact, leg_op: Operation, aim, u, reach: float, capture_angle: float):
-    """The particle's lateral coordinate (nm along ``perp(u)`` from ``aim``) and its 1σ
-    from the contact angle at the leg's end, the particle ``reach`` nm (radius plus tip
-    radius) from the tip's end along the contact normal; None when not measured, not
-    within the capture cone, or not to :data:`CONTACT_STD`."""
+def _from_contact(contact, tip_end, motion, reach: float, capture_angle: float):
+    """The particle's centre (layout nm) and its 1σ from the contact angle at a leg's end,
+    the particle ``reach`` nm (radius plus tip radius) from the tip's end ``tip_end`` along
+    the contact normal, ``motion`` the tip's direction; None when not measured, not within
+    the capture cone, or not to :data:`CONTACT_STD`."""
     if contact is None or abs(contact.angle) >= capture_angle:
         return None
     _, std = contact.lateral(reach)
     if not std <= CONTACT_STD:
         return None
-    path = np.asarray(leg_op.tip_path, float)
-    m = (path[-1] - path[-2]) / np.linalg.norm(path[-1] - path[-2])
     a = math.radians(contact.angle)
-    particle = path[-1] + reach * (math.cos(a) * m + math.sin(a) * perp(m))
-    return float((particle - np.asarray(aim, float)) @ perp(np.asarray(u, float))), math.hypot(std, TIP_STD)
+    m = np.asarray(motion, float) / np.linalg.norm(motion)
+    return np.asarray(tip_end, float) + reach * (math.cos(a) * m + math.sin(a) * perp(m)), math.hypot(std, TIP_STD)
 
 
 def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, tip_radius: float, lead: float):
     """Push a particle from ``start`` (its measured pose) to ``op.expect.at`` in legs,
-    one line across between them (see the module docstring). Returns ``(verdict, legs,
-    the last leg's operation)``; the caller scans after the last leg as after any push."""
+    located between them (see the module docstring). Returns ``(verdict, legs, the last
+    leg's operation)``; the caller scans after the last leg as after any push."""
     opts = ctx.options
+    contact = opts.between_legs == "contact"
+    track = TRACK_STOP * opts.capture_angle if contact else None
     goal = np.asarray(op.expect.at, float)
     pos = np.asarray(start.at, float)
+    reach_rc = start.radius + tip_radius
     lat_std = math.sqrt(max(float(np.linalg.eigvalsh(ctx.belief.seen[op.object].cov)[-1]), 0.0))
     error, weight = 0.0, 0.0            # the particle's own direction error, degrees, as measured
     legs, verdict, leg_op = 0, None, op
-    while True:
+    most = MAX_LEGS + int(float(np.linalg.norm(goal - pos)) / MIN_LEG)
+    while legs < most:
         left = float(np.linalg.norm(goal - pos))
         u = (goal - pos) / left
         # once a leg has shown the particle's own turn, that is known to a degree; the
         # particle still slides sideways on the tip at that rate, whatever the aim
         spread = LEARNT_HEADING_STD if weight else opts.push_heading_std
-        length = leg_length(start.radius, tip_radius, lat_std, spread, opts.capture_angle, error)
-        last = left <= 1.2 * length
-        step = left if last else length
-        aim = pos + step * _turned(u, -error)      # aimed so the particle's own turn lands it on the line
-        leg_lead = lead if legs == 0 or opts.between_legs != "contact" else max(lead, LEG_LEAD)
+        model = length = leg_length(start.radius, tip_radius, lat_std, spread, opts.capture_angle, error)
+        if track is not None:           # the contact angle stops a leg whose particle slides off sooner
+            length = TRACK_REACH * model
+            if weight:                  # its turn known: it slides to the stop angle over about this
+                slide = reach_rc * math.sin(math.radians(track)) / max(abs(math.tan(math.radians(error))), 1e-6)
+                length = min(length, max(model, TRACK_SLACK * slide))
+        # the last leg, of the model's length, sets where the particle ends: the legs before
+        # it leave it that much (the particle's turn over a longer one would land it off its line)
+        last = left <= 1.2 * model
+        step = left if last else max(min(length, left - model), 0.5 * model)
+        heading = _turned(u, -error)     # aimed so the particle's own turn lands it on the line
+        # it slides round the tip by step · sin e / r_c as it goes and falls behind the
+        # tip's end by r_c (1 - cos) of that: the tip goes on by as much
+        slid = min(step * abs(math.sin(math.radians(error))) / reach_rc, math.radians(opts.capture_angle))
+        aim = pos + (step + reach_rc * (1.0 - math.cos(slid))) * heading
+        leg_lead = max(lead, LEG_LEAD) if contact else lead
         leg_op = particle_push(Operation(op.id, op.object, op.target, op.tip_path, Expect(tuple(aim), None), op.kind),
                                tuple(pos), start.radius, tip_radius, leg_lead)
         if leg_op is None:
             return verdict, legs, op
-        verdict = yield from stream_push(ctx, leg_op, lever, preload, None if last or opts.between_legs != "contact" else leg_lead)
+        # blind beyond the model's own length: no angle to say the particle is still on the tip
+        blind = leg_lead + length / TRACK_REACH if track is not None else math.inf
+        verdict = yield from stream_push(ctx, leg_op, lever, preload, leg_lead if contact else None, track, blind,
+                                         opts.capture_angle)
         legs += 1
-        if last or verdict.failed:
+        cut = verdict.stopped is not None
+        if verdict.failed or (last and not cut):
             return verdict, legs, leg_op
-        # the last leg sets where the particle ends: it starts from a line's measurement
-        seen = None if opts.between_legs != "contact" or float(np.linalg.norm(goal - aim)) <= 1.2 * length else \
-            _from_contact(verdict.contact, leg_op, aim, _turned(u, -error), start.radius + tip_radius,
-                          opts.capture_angle)
+        path = np.asarray(leg_op.tip_path, float)
+        motion = path[-1] - path[-2]
+        tip_end = np.asarray(verdict.stopped if cut else path[-1], float)
+        m = motion / np.linalg.norm(motion)
+        a = math.radians(verdict.contact.angle) if verdict.contact is not None \
+            and abs(verdict.contact.angle) < opts.capture_angle else 0.0
+        expected = tip_end + reach_rc * (math.cos(a) * m + math.sin(a) * perp(m))     # where it sits on the tip
+        # the leg that may be the last starts from a line's measurement
+        seen = None if not contact or float(np.linalg.norm(goal - expected)) <= 1.2 * model else \
+            _from_contact(verdict.contact, tip_end, motion, reach_rc, opts.capture_angle)
         how = "its contact angle"
         if seen is None:
             how = "a line across"
-            seen = yield from across(ctx, aim, _turned(u, -error), 2 * start.radius,
-                                     3.0 * max(lat_std, 3.0) + 10.0)
+            found = yield from across(ctx, expected, heading, 2 * start.radius, 3.0 * max(lat_std, 3.0) + 10.0)
+            if found is not None:
+                seen = expected + found[0] * perp(heading), found[1]
         if seen is None:                # off the tip: the scan after the push will look for it
             return verdict, legs, leg_op
-        lateral, std = seen
+        at, std = seen
+        lateral, travelled = float((at - pos) @ perp(heading)), float((at - pos) @ heading)
+        pos = at
         t = yield Msg("clock")
-        pos = aim + lateral * perp(_turned(u, -error))
         ctx.observe(op.object, pos, t, np.eye(2) * std ** 2)
-        turn = math.degrees(math.atan2(lateral, step))      # the particle's turn off the tip's line
-        error, weight = (error * weight + turn) / (weight + 1.0), weight + 1.0
+        if travelled >= MIN_LEG / 2:     # the particle's turn off the tip's line
+            turn = math.degrees(math.atan2(lateral, travelled))
+            error, weight = (error * weight + turn) / (weight + 1.0), weight + 1.0
         lat_std = std
-        yield Msg("event", (f"{op.object}: leg {legs} of a push, {lateral:+.1f} nm off its line (by {how}); "
+        short = f" stopped short after {travelled:.0f} nm," if cut else ""
+        yield Msg("event", (f"{op.object}: leg {legs} of a push,{short} {lateral:+.1f} nm off its line (by {how}); "
                             f"its direction error now {error:+.2f}°",))
+        if cut and travelled < MIN_LEG / 2:     # not getting on: the scan after the push takes over
+            return verdict, legs, leg_op
+    return verdict, legs, leg_op

@@ -10,6 +10,7 @@ from nanoasm.bodies import Body
 from nanoasm.planner import Expect, Operation, PlanOptions
 from nanoasm.world.cantilever import Cantilever
 
+from .contact_load import ContactModel, needed_normal_force, push_point, push_preload
 from .context import RunContext
 from .course import Course
 from .drift_steps import emit_drift, fold, suspect_drift, take_reference
@@ -55,6 +56,29 @@ def _locate_start(ctx: RunContext, obj_id: str):
     return None if found is None else found[:3]
 
 
+#: The contact mechanics the preload is chosen by: the seed's nominal values (contact_load).
+CONTACT = ContactModel()
+
+
+def _load_factor(ctx: RunContext, body: Body, op: Operation, lever: Cantilever, tip_radius: float) -> float:
+    """The preload, as a multiple of the instrument's, that keeps the tip down on ``body``
+    through ``op`` (:mod:`.contact_load`): a rod at the push point nearest its middle of
+    where the push starts and where it is expected to end."""
+    sigmas = ctx.options.slip_sigmas
+    if sigmas < 0:
+        return 1.0
+    path = op.tip_path
+    if body.kind == "rod":
+        end = Body(body.id, "rod", op.expect.at, body.diameter,
+                   body.angle if op.expect.angle is None else op.expect.angle, body.length)
+        ls = [push_point(body, path[0]), push_point(end, path[-1])]
+        force = max(needed_normal_force(body, tip_radius, CONTACT, sigmas, l) for l in ls)
+    else:
+        force = needed_normal_force(body, tip_radius, CONTACT, sigmas)
+    cfg = ctx.config
+    return push_preload(force, cfg, lever) / cfg.preload
+
+
 def _quarantine(ctx: RunContext, op: Operation, poses, plan_options: PlanOptions, t: float) -> None:
     """The push of ``op`` may have shoved what lies near its sweep (``poses``: where its
     object started and went, and where the plan expected it): quarantine those."""
@@ -95,7 +119,8 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
             op = particle_push(op, start.at, start.radius, plan_options.tip_radius, plan_options.lead)
             if op is None:
                 return "ok"
-    preload = course.preload.get(obj_id, 1.0)
+    # pressed to keep the tip down on this object, harder again for each slip over it
+    preload = course.preload.get(obj_id, 1.0) * _load_factor(ctx, start, op, lever, plan_options.tip_radius)
     if scans and start.kind == "particle":      # long pushes in legs, a line across between
         verdict, legs, _ = yield from push_in_legs(ctx, op, start, lever, preload, plan_options.tip_radius,
                                                   plan_options.lead)

@@ -102,7 +102,9 @@ class ExecOptions:
         line only before the last leg and where the angle is too uncertain. ``"contact"``
         takes 20-36 % less instrument time per filled slot on the families of long pushes
         (allpushed 41.3 -> 32.9 s, wide 70.5 -> 45.0 s) and fills as many slots
-        (``bench/RESULTS_pushes.md``).
+        (``bench/RESULTS_pushes.md``). Its legs are tracked: the angle is read as the tip
+        pushes and a leg stopped once the particle slides far round the tip, so the
+        legs before the last may run longer (:mod:`.push_legs`).
     drift_q : float
         Process noise of the drift filter: random walk of the drift velocity, nm²/s³.
     drift_q_offset : float
@@ -137,6 +139,11 @@ class ExecOptions:
         ``[friction] mu_ts``, a dry-run's calibration): the lateral force ``μ_ts F_n`` the
         tip feels sliding on the substrate is not the object's resistance, so the stuck
         test leaves it out. 0: all of it counts.
+    slip_sigmas : float
+        The preload of a push presses the tip at least with the least normal force that
+        keeps it down (seed eq. 4.7, 4.20) this many standard deviations of its
+        object-to-object spread above the nominal one (:mod:`.contact_load`); never below
+        the instrument's preload. Negative: the instrument's preload alone.
     """
 
     strategy: Strategy = param(Strategy.FULL, "", "execution strategy")
@@ -188,6 +195,8 @@ class ExecOptions:
                                positive=True)
     substrate_friction: float = param(0.0, "-", "tip-substrate friction coefficient mu_ts (the stuck test "
                                       "leaves the tip's own friction out)", nonnegative=True, hi=2.0)
+    slip_sigmas: float = param(2.5, "-", "spread of the least normal force (eq. 4.7) a push's preload "
+                               "covers, standard deviations; negative: the instrument's preload", lo=-1.0, hi=6.0)
 
     def __post_init__(self) -> None:
         validate(self)

@@ -178,12 +178,13 @@ def _allpushed_jump(seed: int, at: float):
 
 
 def test_a_push_gone_astray_in_a_drift_jump_is_found_by_the_survey_and_pushed_home():
-    """allpushed seed 3, the jump at 750 s: the survey of a slot left empty sees its object
-    away from where it was believed, and the pushes planned from there fill every slot.
-    (Seed 19 at 820 s before the drift estimate learnt the creep time constant; seed 4 at
+    """allpushed seed 11, the jump at 700 s: the check scan does not find o7 in its slot,
+    the survey sees it 51 nm from where it was believed, and the pushes planned from there
+    fill every slot. (Seed 3 at 750 s before tracked legs and a preload per object; seed
+    19 at 820 s before the drift estimate learnt the creep time constant; seed 4 at
     900 s before contact legs: o8's last push left 115 nm off, a neighbour taken for it by
     the check scans, seen 319 nm from where it was believed.)"""
-    out, layout, events = _allpushed_jump(3, 750.0)
+    out, layout, events = _allpushed_jump(11, 700.0)
     assert any(t.startswith("repair round 1") for t in events.texts), events.texts
     assert any(t.startswith("survey 1") and "nm from where it was believed" in t for t in events.texts)
     assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
