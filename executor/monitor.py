@@ -36,13 +36,16 @@ class Verdict:
     ``index``: first sample of the failure within the block; ``peak_force`` nN;
     ``contact``: where the object sat on the tip at the push's end
     (:class:`~.contact_angle.ContactAngle`), when measured; ``stopped``: where the tip
-    was (layout frame nm) when a tracked push was stopped short on its contact angle."""
+    was (layout frame nm) when a tracked push was stopped short on its contact angle;
+    ``felt``: False when it was stopped blind with nothing pressing on the tip (the object
+    left behind, or carried by a force within the friction's scatter: a line across tells)."""
 
     status: str
     index: int | None = None
     peak_force: float = 0.0
     contact: object | None = None
     stopped: tuple[float, float] | None = None
+    felt: bool = True
 
     @property
     def failed(self) -> bool:

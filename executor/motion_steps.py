@@ -105,8 +105,9 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     after every chunk of :data:`TRACK_CHUNK` samples, and the push is stopped and the tip
     lifted once it passes ``track``: the object is sliding off the tip (the verdict's
     ``stopped`` says where the tip was); so it is too where the tip has gone ``blind`` nm
-    from the path's start with no angle to read. Stopped with nothing pressing on the tip
-    (less than :data:`~.contact_angle.MIN_FORCE` beyond its own friction), or at an angle
+    from the path's start with no angle to read, and the verdict's ``felt`` says whether
+    anything pressed on the tip then (more than :data:`~.contact_angle.MIN_FORCE` beyond
+    its own friction; a particle of low friction carried may not). Stopped at an angle
     beyond ``capture`` (the object is not carried), the push has lost its object: "slipped"."""
     cfg = ctx.config
     if preload_factor != 1.0:
@@ -163,12 +164,12 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     ctx.ledger.times["mode_switch"] += max(t_end - t0 - (n_push + n_other) / cfg.sample_rate, 0.0)
     if verdict is None:
         verdict = monitor.finish()
-    if stop_at is not None and (stop_angle is None and not pressing
-                                or stop_angle is not None and abs(stop_angle.angle) >= capture):
+    if stop_at is not None and stop_angle is not None and abs(stop_angle.angle) >= capture:
         verdict = Verdict("slipped", None, verdict.peak_force)      # the object is not on the tip
     elif stop_at is not None:           # the object sliding off: stopped where the tip was
         at = dac.profile.sample(np.array([stop_at]))[0][0, :2]
-        verdict = replace(verdict, contact=stop_angle, stopped=(float(at[0]), float(at[1])))
+        verdict = replace(verdict, contact=stop_angle, stopped=(float(at[0]), float(at[1])),
+                          felt=stop_angle is not None or pressing)
     elif kept is not None and not verdict.failed:
         verdict = replace(verdict, contact=kept.angle(monitor.compensated, monitor.level, path[-1] - path[-2],
                                                       cfg.scan_angle, lever))

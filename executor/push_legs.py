@@ -56,6 +56,7 @@ from nanoasm.planner.plan import Expect
 
 from .context import RunContext
 from .engine import Msg
+from .monitor import Verdict
 from .motion_steps import stream_push
 from .reaim import particle_push
 from .scan_lines import make_line, measure_line, perp
@@ -217,6 +218,8 @@ def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, t
             found = yield from across(ctx, expected, heading, 2 * start.radius, 3.0 * max(lat_std, 3.0) + 10.0)
             if found is not None:
                 seen = expected + found[0] * perp(heading), found[1]
+        if seen is None and not verdict.felt:   # stopped blind, nothing pressing, and not there
+            return Verdict("slipped", None, verdict.peak_force), legs, leg_op
         if seen is None:                # off the tip: the scan after the push will look for it
             return verdict, legs, leg_op
         at, std = seen
