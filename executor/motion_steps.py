@@ -126,7 +126,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     tracked = track is not None and kept is not None
     path = np.asarray(op.tip_path, float)
     stop_at, stop_angle = None, None    # where a tracked push was stopped short, and its angle
-    pressing = True                     # the last chunk's samples pressed on an object
+    pressing = True                     # a blind stop's chunk pressed on an object
     n_push = n_other = 0
     # creep follows the path in pieces as it goes, and its moves end where XY rests
     rests = dac.profile.rests()
@@ -146,14 +146,14 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
             v = monitor.check(block.s_n[pushing], block.s_l[pushing], xy[pushing])
             verdict = v if v.failed else None
             if tracked and verdict is None:
-                f_n, f_l = monitor.forces(block.s_n[pushing], block.s_l[pushing], xy[pushing])
-                pressing = float(np.mean(np.abs(f_l) - monitor.friction * np.maximum(f_n, 0.0))) >= MIN_FORCE
                 angle = kept.angle(monitor.compensated, monitor.level, path[-1] - path[-2], cfg.scan_angle, lever)
                 end = chunk.first + len(chunk) - 1
                 if angle is not None and abs(angle.angle) >= track:
                     stop_at, stop_angle = end, angle
                 elif angle is None and math.dist(dac.profile.sample(np.array([end]))[0][0, :2], path[0]) > blind:
                     stop_at = end
+                    f_n, f_l = monitor.forces(block.s_n[pushing], block.s_l[pushing], xy[pushing])
+                    pressing = float(np.mean(np.abs(f_l) - monitor.friction * np.maximum(f_n, 0.0))) >= MIN_FORCE
         here = rests[(rests >= chunk.first) & (rests < chunk.first + len(chunk))] - chunk.first
         stop = verdict is not None or stop_at is not None
         _moved(ctx, current, chunk.codes, block.t, np.append(here, len(chunk) - 1) if stop else here)

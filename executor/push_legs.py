@@ -149,9 +149,15 @@ def _from_contact(contact, tip_end, motion, reach: float, capture_angle: float):
     _, std = contact.lateral(reach)
     if not std <= CONTACT_STD:
         return None
-    a = math.radians(contact.angle)
+    return _on_tip(tip_end, motion, reach, contact.angle), math.hypot(std, TIP_STD)
+
+
+def _on_tip(tip_end, motion, reach: float, angle: float):
+    """Where a particle sits that touches the tip's end ``tip_end`` at ``angle`` degrees
+    round it from the tip's direction ``motion``, its centre ``reach`` nm away."""
+    a = math.radians(angle)
     m = np.asarray(motion, float) / np.linalg.norm(motion)
-    return np.asarray(tip_end, float) + reach * (math.cos(a) * m + math.sin(a) * perp(m)), math.hypot(std, TIP_STD)
+    return np.asarray(tip_end, float) + reach * (math.cos(a) * m + math.sin(a) * perp(m))
 
 
 def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, tip_radius: float, lead: float):
@@ -205,10 +211,9 @@ def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, t
         path = np.asarray(leg_op.tip_path, float)
         motion = path[-1] - path[-2]
         tip_end = np.asarray(verdict.stopped if cut else path[-1], float)
-        m = motion / np.linalg.norm(motion)
-        a = math.radians(verdict.contact.angle) if verdict.contact is not None \
+        angle = verdict.contact.angle if verdict.contact is not None \
             and abs(verdict.contact.angle) < opts.capture_angle else 0.0
-        expected = tip_end + reach_rc * (math.cos(a) * m + math.sin(a) * perp(m))     # where it sits on the tip
+        expected = _on_tip(tip_end, motion, reach_rc, angle)           # where it sits on the tip
         # the leg that may be the last starts from a line's measurement
         seen = None if not contact or float(np.linalg.norm(goal - expected)) <= 1.2 * model else \
             _from_contact(verdict.contact, tip_end, motion, reach_rc, opts.capture_angle)
