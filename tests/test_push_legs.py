@@ -151,7 +151,7 @@ def _tracked_run(error: float, between: str, offset: float = 0.0, length: float 
 
 def test_a_5_um_push_that_starts_5_nm_off_centre_ends_on_its_line_in_tracked_legs():
     """Issue 13's test: tracked legs (the contact angle read as the tip pushes, each leg
-    stopped once the particle has slid half the capture angle round the tip) bring it
+    stopped once the particle has slid 0.7 of the capture angle round the tip) bring it
     within 10 nm of its line, in fewer legs than legs of the model's length alone."""
     v, legs, b, goal, lines = _tracked_run(1.5, "contact", offset=5.0, length=5000.0)
     v_line, legs_line, b_line, _, _ = _tracked_run(1.5, "line", offset=5.0, length=5000.0)

@@ -86,7 +86,7 @@ def test_an_object_pushed_while_the_drift_jumped_is_looked_for_where_the_correct
 
 def test_a_drift_jump_during_the_check_scans_does_not_falsify_the_verdict():
     """allpushed seed 6, the jump at 822 s while the run scans its slots for the verdict
-    (818-825 s since tracked legs and a preload per object; 826-833 s since the drift
+    (818, 822 and 825 s tried since tracked legs and a preload per object, 828.1 s too late; 826-833 s since the drift
     estimate learns the creep time constant; 844-852 s since contact legs and creep that
     follows the legs; 912-920 s since the tip
     force follows the contact normal; 918-925 s before that, 900 s before dry-runs
