@@ -26,14 +26,15 @@ import numpy as np
 from nanoasm.world.identify.levelling import fit_surface, robust_sigma
 
 from .context import RunContext
-from .edges import TOUCHING
+from .edges import TALLER_ONLY, TOUCHING
 from .engine import Msg
 
 __all__ = ["CROWDED", "Apex", "apex_pixel", "find_apices", "image_check"]
 
 #: Why a line found nothing when a neighbour ran into it (the bump runs off the line's
-#: end, or two bumps merge): where the lines of a pattern say so, an image can tell.
-CROWDED = ("object cut by the line end", TOUCHING)
+#: end, two bumps merge, or only a taller one is on the line): where the lines of a
+#: pattern say so, an image can tell.
+CROWDED = ("object cut by the line end", TOUCHING, TALLER_ONLY)
 
 #: Pixels per particle diameter of the image (at most :data:`LARGEST_PIXEL` nm, at
 #: least :data:`SMALLEST_PIXEL`).

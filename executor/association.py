@@ -31,10 +31,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .edges import TALLER
+
 #: A sighting's height may read this share of an object's diameter (a line off the summit).
 SIZE_LOW = 0.7
-#: ... and at most this share (an object this much higher is another object).
-SIZE_HIGH = 1.2
+#: ... and at most this share (an object this much higher is another object; a line's
+#: edges never take one, :data:`~.edges.TALLER`).
+SIZE_HIGH = TALLER
 #: Height noise (nm) assumed when the lines report none.
 HEIGHT_NOISE = 0.5
 

@@ -36,6 +36,11 @@ MAX_HEIGHT = 1e9
 MERGE_DIP = 0.15
 #: The reason given for such a bump.
 TOUCHING = "two objects touch on the line"
+#: A bump higher than this share of the expected height (plus three noise) is another
+#: object, never the one looked for (identification measures heights to about 1 %).
+TALLER = 1.2
+#: The reason given when every bump on the line is such an object.
+TALLER_ONLY = "only taller objects on the line"
 
 
 @dataclass(frozen=True)
@@ -241,7 +246,8 @@ def _crossing(y: np.ndarray, lo: int, hi: int, level: float, h: float,
 
 
 def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
-               expected: float | None = None, noise_rms: float | None = None) -> Edges:
+               expected: float | None = None, noise_rms: float | None = None,
+               taller: float | None = TALLER) -> Edges:
     """The two crossings of an object of expected ``height`` on a scan line.
 
     Parameters
@@ -263,6 +269,10 @@ def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
         that contains it is at distance 0).
     noise_rms : float, optional
         Height noise (nm); estimated from the substrate samples when not given.
+    taller : float, optional
+        A bump whose summit is higher than ``taller * height`` plus three noise is
+        another object (a taller neighbour the line runs into) and is never taken; None
+        takes any bump.
 
     Returns
     -------
@@ -294,6 +304,11 @@ def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
     inner = [(i, j) for i, j in runs if i > 0 and j < n - 1]
     if not inner:
         return miss("object cut by the line end", len(runs))
+    if taller is not None:
+        cap = taller * height + 3 * noise
+        inner = [(i, j) for i, j in inner if y[i:j + 1].max() <= cap]
+        if not inner:
+            return miss(TALLER_ONLY, len(runs))
 
     def distance(run: tuple[int, int]) -> tuple[float, float]:
         s1, s2 = (run[0] - 0.5) * h, (run[1] + 0.5) * h

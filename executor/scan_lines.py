@@ -19,7 +19,7 @@ import numpy as np
 from nanoasm.bodies import Body
 from nanoasm.param import ParamError, number, param, validate
 
-from .edges import Edges, find_edges
+from .edges import TALLER, Edges, find_edges
 
 #: Fewest samples on a scan line.
 MIN_SAMPLES = 11
@@ -87,6 +87,10 @@ class ScanOptions:
         A rod outline whose length differs from the believed length by more than this
         fraction of it (or by more than one diameter, whichever is larger) is refused:
         the lines did not cross the rod as the pattern assumed.
+    taller : float, optional
+        A bump on a line higher than this share of ``height`` (plus three noise) is
+        another object and never taken for the one looked for (see
+        :func:`~.edges.find_edges`); None takes any bump.
     """
 
     spacing: float | None = param(None, "nm", "distance between samples on a line (None: min(1, R / 10))",
@@ -102,6 +106,8 @@ class ScanOptions:
     max_lines: int = param(64, "-", "most lines one search may use", lo=2)
     length_tolerance: float = param(0.2, "-", "largest relative misfit of a rod outline's length",
                                     positive=True)
+    taller: float | None = param(TALLER, "-", "a bump higher than this share of the expected height "
+                                 "is another object (None: any bump)", optional=True, lo=1.0)
 
     def __post_init__(self) -> None:
         validate(self)
@@ -241,7 +247,7 @@ def measure_line(line: ScanLine, expected: float, opts: ScanOptions
     if z.shape != (line.n,):
         raise ValueError(f"profile for line {line.role} must have shape ({line.n},), got {z.shape}")
     edges = find_edges(z, line.length, opts.height, fraction=opts.fraction, expected=expected,
-                       noise_rms=opts.noise_rms)
+                       noise_rms=opts.noise_rms, taller=opts.taller)
     return LineOutcome(line, edges)
 
 

@@ -142,12 +142,21 @@ def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
     off = ctx.offset(t)
     reach = tol.position + ctx.r_max(t)
     at = np.asarray(target.at, float) + off
+    # the lines look for an object of the slot's size: as tall as its size tolerance allows
+    wide = replace(ctx.scan_opts, taller=None if ctx.scan_opts.taller is None
+                   else max(ctx.scan_opts.taller, 1.0 + tol.size))
     if target.kind == "rod":
-        pattern = rod_before(at, target.angle, target.length, target.diameter, reach, measure_angle=True,
-                             options=ctx.scan_opts)
+        # the lines are placed for the length of the rod assigned (a slot takes rods of its
+        # length within the size tolerance: lines placed for the slot's length cross
+        # beyond the ends of a shorter one); the size check below is the slot's
+        length = target.length
+        if obj is not None and obj in ctx.belief.objects and ctx.belief[obj].kind == "rod":
+            length = ctx.belief[obj].length
+        pattern = rod_before(at, target.angle, length, target.diameter, reach, measure_angle=True,
+                             options=wide)
     else:
         # short lines: a slot's neighbours in a packed array are a few tens of nm away
-        opts = replace(ctx.scan_opts, margin=CHECK_MARGIN)
+        opts = replace(wide, margin=CHECK_MARGIN)
         half = target.radius + reach + CHECK_MARGIN
         exclude = {obj} if obj is not None else set()
         direction = clear_direction(ctx, np.asarray(target.at, float), half, exclude=exclude)

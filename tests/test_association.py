@@ -67,11 +67,12 @@ def test_a_sighting_inside_only_its_own_gate_is_a_match(u, v, gate):
 
 def _run(truth, believed, step, r_max=150.0):
     """Run ``step(ctx)`` against a simulated sample of ``truth`` with the belief
-    ``believed`` ({id: (x, y, d)}) known to within ``r_max`` nm; returns (result, ctx,
-    event texts)."""
+    ``believed`` ({id: (x, y, d)} of particles, or a list of :class:`EnvObject`) known to
+    within ``r_max`` nm; returns (result, ctx, event texts)."""
     sim = world(truth)
-    env = Environment((4000.0, 4000.0), tuple(EnvObject(k, "particle", (x, y), d) for k, (x, y, d) in
-                                              believed.items()), ())
+    objects = believed if isinstance(believed, list) else [EnvObject(k, "particle", (x, y), d)
+                                                           for k, (x, y, d) in believed.items()]
+    env = Environment((4000.0, 4000.0), tuple(objects), ())
     ctx = RunContext(sim.config, ExecOptions(strategy="local-scan", r_max=r_max), NoDrift((0.0, 0.0), 0.0),
                      Belief(env, 0.0), References())
     events: list[str] = []
@@ -139,6 +140,25 @@ def test_a_rod_across_a_particle_slot_is_not_taken_for_a_particle(angle):
     v, events = _check([rod((1000, 2000), angle, 500.0, d=70.0, id="r")])
     assert v.state == "missed"
     assert any("elongated" in e or "a ridge, no particle" in e for e in events)
+
+
+@pytest.mark.parametrize("length", [460.0, 500.0, 600.0, 720.0])
+def test_a_rod_of_any_length_its_slot_takes_is_found_filling_it(length):
+    """The check's second cross line was placed for the slot's length (600 nm): it passed
+    beyond the ends of a 500 nm rod lying in the slot, which was reported missed (rods
+    family seeds 5 and 7). It is placed for the assigned rod's believed length."""
+    from simkit import rod
+
+    from nanoasm.bodies import Body
+    from nanoasm.cad.layout import Layout
+    from nanoasm.executor.verdict import check_slots
+    from nanoasm.planner.plan import Assignment
+
+    layout = Layout((4000.0, 4000.0), (Body("bar", "rod", (1000.0, 2000.0), 70.0, 0.0, 600.0),))
+    (v,), _, events = _run([rod((1004, 1998), 0.8, length, d=72.0, id="r")],
+                           [EnvObject("a", "rod", (1000.0, 2000.0), 72.0, 0.0, length)],
+                           lambda ctx: check_slots(ctx, layout, (Assignment("bar", "a"),)), r_max=40.0)
+    assert v.state == "filled" and abs(v.error - math.hypot(4, 2)) < 3.0, events
 
 
 # -- the verdict: a neighbour pressed against the slot's particle -------------------------

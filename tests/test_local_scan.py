@@ -136,6 +136,27 @@ def test_second_object_on_the_line_the_nearest_to_the_expected_position_is_taken
     assert other.centre == pytest.approx(470.0, abs=0.3)
 
 
+def test_a_taller_neighbour_nearer_the_expected_position_is_not_taken():
+    """A rod 63 nm high looked for where an 86 nm particle lies nearer the line's expected
+    place (mixed seed 10, 45° swings: the particle's edges made a rod 270 nm from the
+    true one, which the run then took for a new object)."""
+    rng = np.random.default_rng(6)
+    length, d = 600.0, 63.0
+    s = np.linspace(0, length, 601)
+    z = np.maximum(sphere_profile(s, 140.0, d), sphere_profile(s, 330.0, 86.0)) + rng.normal(0, NOISE, s.size)
+    e = find_edges(z, length, d, expected=300.0)
+    assert e.found and e.candidates == 2 and e.centre == pytest.approx(140.0, abs=0.3)
+    assert e.peak == pytest.approx(d, abs=1.5)
+    # the old rule (nearest bump, whatever its height) took the particle
+    assert find_edges(z, length, d, expected=300.0, taller=None).centre == pytest.approx(330.0, abs=0.3)
+    # only the taller object on the line: nothing of the rod is found there
+    alone = find_edges(sphere_profile(s, 330.0, 86.0) + rng.normal(0, NOISE, s.size), length, d)
+    assert not alone.found and alone.reason == "only taller objects on the line"
+    # within the size gate (1.2 d and three noise) a bump is still the object
+    high = find_edges(sphere_profile(s, 330.0, 1.15 * d) + rng.normal(0, NOISE, s.size), length, d)
+    assert high.found and high.centre == pytest.approx(330.0, abs=0.3)
+
+
 def test_two_touching_objects_are_not_taken_for_one():
     rng = np.random.default_rng(5)
     length, d = 500.0, 80.0

@@ -82,6 +82,7 @@ BAD = [
     (ScanOptions, "noise_rms", -0.1),
     (ScanOptions, "max_lines", 1),
     (ScanOptions, "length_tolerance", 0.0),
+    (ScanOptions, "taller", 0.9),
 ]
 
 
