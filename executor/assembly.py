@@ -285,12 +285,17 @@ class Assembly:
         ctx = self.ctx
         w0 = time.perf_counter()
         now = self.ctx.environment()
+        was = self.replanner.plan
+        before = {a.target for a in was.assignment} if was is not None else set()
         rest = self.replanner.remainder(now, done, force=True, pivot_offsets=ctx.pivots.offsets(now.objects))
         ctx.ledger.wall["plan"] += time.perf_counter() - w0
         ctx.ledger.counts["replans"] += 1
         ops = list(rest.plan.operations)
         self.course.follow(now, ops)
         ctx.moving = {p.object for p in ops}
-        yield Msg("event", (f"replanned after {after}: {len(ops)} push(es) remain",))
+        # a slot the plan had and the new one leaves unfilled is named, with the planner's reason
+        dropped = "".join(f"; slot {u.target} left unfilled: {u.reason}" for u in rest.plan.unfilled
+                          if u.target in before)
+        yield Msg("event", (f"replanned after {after}: {len(ops)} push(es) remain{dropped}",))
         yield Msg("emit", ("plan", rest.plan.to_dict()))
         return ops

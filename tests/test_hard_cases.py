@@ -191,6 +191,7 @@ def test_a_stuck_push_along_the_cantilever_is_not_retried_forever():
     """With replanning a push that keeps failing was once planned again and again (3048
     failed pushes and 3049 replans of this particle); the watch stops such a run early."""
     seen = {"plan": 0, "replanned": 0, "gave up": 0}
+    dropped = []
 
     def watch(topic: str, doc: dict) -> None:
         if topic == "checkpoint" and doc["counts"]["pushes"] > 20:
@@ -200,12 +201,18 @@ def test_a_stuck_push_along_the_cantilever_is_not_retried_forever():
         if topic == "event":
             for key in ("replanned", "gave up"):
                 seen[key] += doc.text.startswith(key)
+            dropped.extend(doc.text.split("; ")[1:] if doc.text.startswith("replanned") else [])
 
     out = dryrun.dry_run(*_stuck_case(), seed=1, options=ExecOptions(strategy="full"), subscribers=[watch])
     assert 1 <= out.report.counts.failed_pushes <= 10
     # every replan is logged as a plan of its own; stuck objects were given up on
     assert seen["replanned"] >= 1 and seen["plan"] == 1 + seen["replanned"]
     assert seen["gave up"] >= 1
+    # the replan that leaves the slot without an object says so, once, with the planner's reason
+    assert dropped == [f"slot s1 left unfilled: {out.report.unfilled[0].reason}"]
+    # ... and does not claim there is no particle of its size when all three were given up
+    assert out.report.unfilled[0].reason == ("no particle of diameter 90 +/- 25% that may be pushed ('o1', 'o2', "
+                                             "'o3' may not: given up, at the scan's edge, unsure or on a keep-out)")
 
 
 # -- objects touching --------------------------------------------------------------------
