@@ -42,10 +42,15 @@ class PlanOptions:
     seed : int
         Seeds OMPL's sampler so a plan is reproducible.
     rod_swing : float
-        Largest rotation, degrees, of one rod push (one half of a zigzag step).
+        Largest rotation, degrees, of one rod push (one half of a zigzag step). 45° by
+        default: over 10 seeds of the rods, mixed and device families it took half the
+        pushes of 20° (rods: 24 against 53.5 a run) and filled as many rod slots or more
+        (``bench/RESULTS_rods.md``); the search still has swings of a half and a quarter
+        of it, and the finish down to 0.5°.
     rod_push_point : float
         Push point of rod pushes as a fraction of the length from the pushed end; kept
-        well away from the bifurcation at L/2 (seed eq. 4.10).
+        well away from the bifurcation at L/2 (seed eq. 4.10). 0.2 by default (measured
+        with the 45° swing; the tip holds a rod to l ≈ 0.32 L at the default preload).
     align : str
         How a layout with alignment marks is registered to the scan before planning
         (:mod:`nanoasm.planner.alignment`): ``rigid`` (rotation and translation),
@@ -62,8 +67,8 @@ class PlanOptions:
     min_confidence: float = param(0.5, "-", "objects identified with less confidence are never assigned",
                                   lo=0.0, hi=1.0)
     seed: int = param(0, "-", "seed of OMPL's sampler", nonnegative=True)
-    rod_swing: float = param(20.0, "deg", "largest rotation of one rod push", positive=True, hi=60.0)
-    rod_push_point: float = param(0.1, "-", "push point of rod pushes, fraction of the length from the "
+    rod_swing: float = param(45.0, "deg", "largest rotation of one rod push", positive=True, hi=60.0)
+    rod_push_point: float = param(0.2, "-", "push point of rod pushes, fraction of the length from the "
                                   "pushed end", lo=0.0, hi=0.3)
     align: str = param("rigid", "", "registration of a layout with marks: rigid, similarity (scale too) or none",
                        choices=ALIGNS)

@@ -141,7 +141,7 @@ def test_rod_zigzag_reaches_its_slot_under_the_pivot_model():
         assert op.expect.angle is not None and 0 <= op.expect.angle < 180
         c, s = math.cos(math.radians(pose.angle)), math.sin(math.radians(pose.angle))
         along = (op.tip_path[0][0] - pose.at[0]) * c + (op.tip_path[0][1] - pose.at[1]) * s
-        assert abs(along) > 0.3 * pose.length
+        assert abs(along) > 0.25 * pose.length         # 0.3 L at the default push point 0.2 L from an end
         pose = simulate_push(pose, op.tip_path[0], op.tip_path[-1], 10.0)
     assert check_plan(plan, layout, env) == []
 
