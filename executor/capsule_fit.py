@@ -28,12 +28,17 @@ class CapsuleFit:
     cov: np.ndarray
 
 
-def _capsule_residuals(params, pts, dirs, stds, angle):
-    if angle is None:
-        cx, cy, th, half, rad = params
-    else:
-        cx, cy, half, rad = params
-        th = angle
+def _unpack(params, angle, half):
+    """(cx, cy, th, half, rad) from the free parameters; ``angle``/``half`` when fixed."""
+    it = iter(params)
+    cx, cy = next(it), next(it)
+    th = next(it) if angle is None else angle
+    hf = next(it) if half is None else half
+    return cx, cy, th, hf, next(it)
+
+
+def _capsule_residuals(params, pts, dirs, stds, angle, fixed_half=None):
+    cx, cy, th, half, rad = _unpack(params, angle, fixed_half)
     a = np.array([math.cos(th), math.sin(th)])
     rel = pts - np.array([cx, cy])
     t = np.clip(rel @ a, -half, half)
@@ -45,7 +50,7 @@ def _capsule_residuals(params, pts, dirs, stds, angle):
 
 
 def fit_capsule(points, directions, stds, centre, angle: float, half: float, radius: float, *,
-                fix_angle: bool = False) -> CapsuleFit | None:
+                fix_angle: bool = False, fix_half: bool = False) -> CapsuleFit | None:
     """Least-squares rod outline through edge crossings.
 
     Every edge crossing of a scan line with a rod lies on the rod's outline at the edge
@@ -66,6 +71,9 @@ def fit_capsule(points, directions, stds, centre, angle: float, half: float, rad
         Starting pose: centre (2,), axis angle (deg), core half-length and outline radius (nm).
     fix_angle : bool
         Keep ``angle`` (needs k >= 4); otherwise fit it (k >= 5).
+    fix_half : bool
+        Keep ``half`` (the believed length: one end of the rod was not seen); one
+        crossing fewer is needed. Its row of ``cov`` is zero.
 
     Returns
     -------
@@ -74,15 +82,18 @@ def fit_capsule(points, directions, stds, centre, angle: float, half: float, rad
     pts = np.asarray(points, float)
     dirs = np.asarray(directions, float)
     stds = np.asarray(stds, float)
-    n_par = 4 if fix_angle else 5
+    keep = [0, 1] + ([] if fix_angle else [2]) + ([] if fix_half else [3]) + [4]
+    n_par = len(keep)
     if pts.shape[0] < n_par:
         return None
     th0 = math.radians(angle)
-    x0 = [centre[0], centre[1], *([] if fix_angle else [th0]), max(half, 0.0), max(radius, 1e-3)]
-    lower = [-np.inf, -np.inf, *([] if fix_angle else [-np.inf]), 0.0, 1e-6]
+    x0 = [centre[0], centre[1], *([] if fix_angle else [th0]), *([] if fix_half else [max(half, 0.0)]),
+          max(radius, 1e-3)]
+    lower = [-np.inf, -np.inf, *([] if fix_angle else [-np.inf]), *([] if fix_half else [0.0]), 1e-6]
     fixed = th0 if fix_angle else None
     sol = least_squares(_capsule_residuals, x0, bounds=(lower, np.inf),
-                        args=(pts, dirs, stds, fixed), x_scale="jac", method="trf")
+                        args=(pts, dirs, stds, fixed, max(half, 0.0) if fix_half else None),
+                        x_scale="jac", method="trf")
     jac = sol.jac
     sv = np.linalg.svd(jac, compute_uv=False)
     if not (np.all(np.isfinite(sol.x)) and sv.size == n_par and sv[-1] > 1e-9 * sv[0]):
@@ -91,16 +102,11 @@ def fit_capsule(points, directions, stds, centre, angle: float, half: float, rad
         cov_p = np.linalg.inv(jac.T @ jac)
     except np.linalg.LinAlgError:     # singular despite the SVD test (rounding)
         return None
-    if fix_angle:
-        cx, cy, hf, rad = sol.x
-        th = th0
-        cov = np.zeros((5, 5))
-        keep = [0, 1, 3, 4]
-        cov[np.ix_(keep, keep)] = cov_p
-    else:
-        cx, cy, th, hf, rad = sol.x
-        conv = np.diag([1.0, 1.0, math.degrees(1.0), 1.0, 1.0])
-        cov = conv @ cov_p @ conv
+    cx, cy, th, hf, rad = _unpack(sol.x, fixed, max(half, 0.0) if fix_half else None)
+    cov = np.zeros((5, 5))
+    cov[np.ix_(keep, keep)] = cov_p
+    conv = np.diag([1.0, 1.0, math.degrees(1.0), 1.0, 1.0])
+    cov = conv @ cov @ conv
     if not np.all(np.isfinite(cov)):
         return None
     return CapsuleFit(np.array([cx, cy]), math.degrees(th), float(hf), float(rad), cov)

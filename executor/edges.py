@@ -67,6 +67,12 @@ class Edges:
     candidates : int
         Number of separate bumps that crossed the level (the nearest to the expected
         position was taken).
+    end : (position, 1-σ, side) or None
+        When no crossing pair was found because the object's bump runs off the line or
+        into a touching neighbour: its one clear crossing (nm from the line's start), its
+        1-σ, and on which side of the object it lies (-1 toward the line's start, +1 its
+        end). A rod whose end touches a particle keeps its other end (see
+        :mod:`~.rod_scan`).
     """
 
     found: bool
@@ -79,6 +85,7 @@ class Edges:
     level: float
     noise: float
     candidates: int
+    end: tuple[float, float, int] | None = None
 
     @property
     def centre(self) -> float | None:
@@ -207,6 +214,30 @@ def _deepest_dip(y: np.ndarray) -> float:
     return float((np.minimum(left, right) - y).max())
 
 
+def _clear_end(y: np.ndarray, run: tuple[int, int], expected: float, level: float, h: float,
+               noise: float, dip_limit: float) -> tuple[float, float, int] | None:
+    """The one crossing of the bump ``run`` that belongs to the object at ``expected``
+    alone (see :attr:`Edges.end`): where the bump runs off one end of the line, its
+    other crossing; where it holds two summits (a touching neighbour), the crossing on
+    the side of ``expected`` away from the dip between them. None when neither holds."""
+    i, j = run
+    n = y.size
+    seg = y[i:j + 1]
+    dips = np.minimum(np.maximum.accumulate(seg), np.maximum.accumulate(seg[::-1])[::-1]) - seg
+    if i > 0 and j < n - 1:
+        if dips.max() <= dip_limit:
+            return None
+        side = -1 if expected < (i + int(np.argmax(dips))) * h else 1
+    elif i > 0:
+        side = -1
+    elif j < n - 1:
+        side = 1
+    else:
+        return None
+    at, std = _crossing(y, i - 1, i, level, h, noise) if side < 0 else _crossing(y, j + 1, j, level, h, noise)
+    return float(at), float(std), side
+
+
 def _crossing(y: np.ndarray, lo: int, hi: int, level: float, h: float,
               noise: float) -> tuple[float, float]:
     """Crossing between samples ``lo`` and ``hi = lo ± 1`` (``y[hi] > level >= y[lo]``).
@@ -296,27 +327,29 @@ def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
     level = fraction * height
     runs = _merge(_runs(y > level), y, level - 4 * noise)
 
-    def miss(reason: str, count: int) -> Edges:
-        return Edges(False, reason, None, None, None, None, None, level, noise, count)
+    def distance(run: tuple[int, int]) -> tuple[float, float]:
+        s1, s2 = (run[0] - 0.5) * h, (run[1] + 0.5) * h
+        return max(s1 - expected, expected - s2, 0.0), abs(0.5 * (s1 + s2) - expected)
+
+    dip_limit = max(MERGE_DIP * height, 8 * noise)
+
+    def miss(reason: str, count: int, end: bool = False) -> Edges:
+        one = _clear_end(y, min(runs, key=distance), expected, level, h, noise, dip_limit) if end else None
+        return Edges(False, reason, None, None, None, None, None, level, noise, count, one)
 
     if not runs:
         return miss("nothing above the level", 0)
     inner = [(i, j) for i, j in runs if i > 0 and j < n - 1]
     if not inner:
-        return miss("object cut by the line end", len(runs))
+        return miss("object cut by the line end", len(runs), end=True)
     if taller is not None:
         cap = taller * height + 3 * noise
         inner = [(i, j) for i, j in inner if y[i:j + 1].max() <= cap]
         if not inner:
-            return miss(TALLER_ONLY, len(runs))
-
-    def distance(run: tuple[int, int]) -> tuple[float, float]:
-        s1, s2 = (run[0] - 0.5) * h, (run[1] + 0.5) * h
-        return max(s1 - expected, expected - s2, 0.0), abs(0.5 * (s1 + s2) - expected)
-
+            return miss(TALLER_ONLY, len(runs), end=True)
     i, j = min(inner, key=distance)
-    if _deepest_dip(y[i:j + 1]) > max(MERGE_DIP * height, 8 * noise):
-        return miss(TOUCHING, len(runs))
+    if _deepest_dip(y[i:j + 1]) > dip_limit:
+        return miss(TOUCHING, len(runs), end=True)
     left, left_std = _crossing(y, i - 1, i, level, h, noise)
     right, right_std = _crossing(y, j + 1, j, level, h, noise)
     peak = float(y[i:j + 1].max())

@@ -34,6 +34,9 @@ Pattern = Generator[ScanLine, np.ndarray, LocalScanResult]
 
 #: A fit less certain of the angle than this (degrees, 1-sigma) is refused.
 MAX_ANGLE_STD = 10.0
+#: A rod seen at one end only is placed by cross lines whose summits are all within
+#: this share of its believed diameter (identification measures it to about 1 %).
+ONE_END_HEIGHT = 0.1
 
 
 def _rod_args(centre, angle, length, diameter, r_max, names=("centre", "angle")):
@@ -304,6 +307,44 @@ def _misses_ends(line: ScanLine, fit) -> bool:
     return max(abs(float((e - np.asarray(line.a)) @ nrm)) for e in ends) > 0.5 * fit.radius
 
 
+def _one_end(pattern, cross, touches, vline, vout, w, th_ref, L, d, rad0, fix_angle, lines):
+    """The outline from the cross lines and the one end line V saw clear (the other ran
+    into a touching neighbour or off the line), at the believed length: the rod's
+    length is not measured (``length_std`` None)."""
+    # without the other end's check of the length, every cross line must be the rod's
+    # height: one that crossed a particle beside the rod would tilt the axis
+    if any(abs(o.edges.peak - d) > ONE_END_HEIGHT * d for o in (*cross, *touches) if o.edges.peak is not None):
+        return missed(pattern, f"line V along the rod saw one end only ({vout.edges.reason}), and a cross "
+                      f"line is not of the rod's height", lines)
+    at, std, side = vout.edges.end
+    end_pt = vline.at(at)
+    pts = np.concatenate([*(o.crossings() for o in (*cross, *touches)), end_pt[None, :]])
+    dirs = np.concatenate([np.repeat([o.line.direction for o in (*cross, *touches)], 2, axis=0),
+                           [vline.direction]])
+    stds = np.array([*(s for o in (*cross, *touches) for s in (o.edges.left_std, o.edges.right_std)), std])
+    half = (L - d) / 2
+    c0 = end_pt - side * (half + rad0) * vline.direction
+    fit = fit_capsule(pts, dirs, stds, c0, math.degrees(math.atan2(w[1], w[0])), half, rad0,
+                      fix_angle=fix_angle, fix_half=True)
+    if fit is None:
+        return missed(pattern, f"line V along the rod saw one end only ({vout.edges.reason}), and the "
+                      f"crossings do not place the rod by it", lines)
+    return _result(pattern, fit, th_ref, d, fix_angle, lines, L, None, "one end seen; ")
+
+
+def _result(pattern, fit, th_ref, d, fix_angle, lines, length, length_std, note=""):
+    """The scan's result from an outline fit, refused where it hardly fixes the rod."""
+    cov = fit.cov
+    angle_std = None if fix_angle else float(math.sqrt(max(cov[2, 2], 0.0)))
+    centre_std = math.sqrt(max(np.linalg.eigvalsh(cov[:2, :2])[-1], 0.0))
+    if centre_std > d / 2 or (angle_std is not None and angle_std > MAX_ANGLE_STD):
+        return missed(pattern, f"{note}the crossings hardly determine the rod's outline (centre "
+                      f"1-sigma {centre_std:.3g} nm)", lines)
+    return LocalScanResult(pattern, True, "found", (float(fit.centre[0]), float(fit.centre[1])),
+                           cov[:2, :2].copy(), near_angle(fit.angle, th_ref), angle_std, length,
+                           length_std, tuple(lines))
+
+
 def _finish_rod(pattern, cross, w, ref, th_ref, L, d, r_max, opts, fix_angle, lines, prime,
                 touches=()):
     """Scan the axis line V through the cross lines' midpoints and fit the outline to
@@ -311,11 +352,13 @@ def _finish_rod(pattern, cross, w, ref, th_ref, L, d, r_max, opts, fix_angle, li
     vline, s_exp = _axis_line([o.midpoint() for o in cross], w, ref, L, r_max, opts, "V" + prime)
     vout = yield from measure_line(vline, s_exp, opts)
     lines.append(vout)
-    if not vout.edges.found:
-        return missed(pattern, f"line V{prime} along the rod found no ends ({vout.edges.reason})",
-                      lines)
     rad0 = float(np.mean([o.edges.width * abs(wedge(o.line.direction, w))
                           for o in cross])) / 2
+    if not vout.edges.found:
+        if vout.edges.end is None:
+            return missed(pattern, f"line V{prime} along the rod found no ends ({vout.edges.reason})",
+                          lines)
+        return _one_end(pattern, cross, touches, vline, vout, w, th_ref, L, d, rad0, fix_angle, lines)
     c0 = vline.at(vout.edges.centre)
     used = [*cross, *touches, vout]
     fit = _fit_lines(used, c0, w, vout.edges.width / 2 - rad0, rad0, fix_angle)
@@ -334,12 +377,4 @@ def _finish_rod(pattern, cross, w, ref, th_ref, L, d, r_max, opts, fix_angle, li
     if abs(length - L) > max(opts.length_tolerance * L, d):
         return missed(pattern, f"the fitted outline is {length:.4g} nm long, not about the "
                       f"believed {L:.4g} nm", lines)
-    cov = fit.cov
-    angle_std = None if fix_angle else float(math.sqrt(max(cov[2, 2], 0.0)))
-    centre_std = math.sqrt(max(np.linalg.eigvalsh(cov[:2, :2])[-1], 0.0))
-    if centre_std > d / 2 or (angle_std is not None and angle_std > MAX_ANGLE_STD):
-        return missed(pattern, f"the crossings hardly determine the rod's outline (centre "
-                      f"1-sigma {centre_std:.3g} nm)", lines)
-    return LocalScanResult(pattern, True, "found", (float(fit.centre[0]), float(fit.centre[1])),
-                           cov[:2, :2].copy(), near_angle(fit.angle, th_ref), angle_std, length,
-                           2 * float(math.sqrt(max(cov[3, 3], 0.0))), tuple(lines))
+    return _result(pattern, fit, th_ref, d, fix_angle, lines, length, 2 * float(math.sqrt(max(fit.cov[3, 3], 0.0))))

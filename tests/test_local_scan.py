@@ -171,6 +171,26 @@ def test_two_touching_objects_are_not_taken_for_one():
     assert rod.found and rod.centre == pytest.approx(250.0, abs=0.5)
 
 
+def test_an_object_that_runs_into_a_neighbour_or_off_the_line_keeps_its_clear_edge():
+    rng = np.random.default_rng(8)
+    length, d = 500.0, 80.0
+    s = np.linspace(0, length, 501)
+    hw = half_width(d)
+    pair = np.maximum(sphere_profile(s, 210.0, d), sphere_profile(s, 290.0, d)) + rng.normal(0, NOISE, s.size)
+    near_left = find_edges(pair, length, d, expected=200.0)
+    assert not near_left.found and near_left.reason == "two objects touch on the line"
+    at, std, side = near_left.end
+    assert side == -1 and at == pytest.approx(210.0 - hw, abs=0.5) and 0 < std < 0.5
+    at, _, side = find_edges(pair, length, d, expected=300.0).end
+    assert side == 1 and at == pytest.approx(290.0 + hw, abs=0.5)
+    cut = find_edges(sphere_profile(s, 480.0, d) + rng.normal(0, NOISE, s.size), length, d)
+    assert cut.reason == "object cut by the line end" and cut.end[2] == -1
+    assert cut.end[0] == pytest.approx(480.0 - hw, abs=0.5)
+    # a clean pair of edges, or nothing, has no such edge
+    assert find_edges(sphere_profile(s, 250.0, d), length, d).end is None
+    assert find_edges(np.zeros(s.size) + rng.normal(0, NOISE, s.size), length, d).end is None
+
+
 def test_an_object_cut_by_the_line_end_is_not_an_edge_pair():
     length, d = 300.0, 60.0
     s = np.linspace(0, length, 301)
@@ -449,6 +469,29 @@ def test_rod_before_measures_a_wrong_believed_angle(sigma):
         assert angle_err(result.angle, true_th) < 1.0
         assert 0 < result.angle_std < 0.5
         assert result.length == pytest.approx(L, abs=2.0)
+
+
+@pytest.mark.parametrize("gap, d_p", [(20.0, 106.0), (5.0, 95.0), (12.0, 80.0), (0.0, 110.0)])
+def test_a_rod_whose_end_touches_a_particle_is_placed_by_its_other_end(gap, d_p):
+    """The bundled bowtie, --seed 4: an 802 x 81 nm rod had been walked to within 20 nm
+    of a 106 nm particle lying on its axis; line V along the rod ran from the rod into the
+    particle and off its end, found no ends, and the rod was lost where it lay. V's one
+    clear end and the cross lines place it at the believed length."""
+    rng = np.random.default_rng(int(gap * 10 + d_p))
+    L, d = 802.0, 81.4
+    for th in (112.8, 30.0, -75.0):
+        truth = MID + rng.uniform(-8, 8, 2)
+        a = axis(th)
+        side = rng.choice([-1.0, 1.0])
+        p_at = truth + side * a * (L / 2 + gap + d_p / 2)
+        bodies = [Body("r", "rod", tuple(truth), d, th + rng.uniform(-1, 1), L),
+                  Body("p", "particle", tuple(p_at), d_p)]
+        result = run_pattern(rod_before(MID, th, L, d, 16.0, measure_angle=True), scanner(bodies, rng))
+        assert result.found, result.reason
+        assert err(result, truth) < 4.0
+        assert angle_err(result.angle, bodies[0].angle) < 1.0
+        # the far end, if V saw it clear, measured the length; else the believed one stands
+        assert result.length == pytest.approx(L, abs=3.0)
 
 
 def test_rod_before_steps_along_the_rod_by_a_quarter_length():
