@@ -18,7 +18,7 @@ deviations above the nominal one: ln F̄z's object part ``A F^a_os`` has the spr
 ``√(s_A² + s_adh²)`` with ``s_A`` from the friction's spread through ∂ln A/∂ln μos and
 ∂ln A/∂ln ν (first order, each log-normal). :func:`push_preload` turns it into the lever's
 deflection (F_z = k · deflection), never below the instrument's preload and never above
-:data:`PRELOAD_CAP` of its Z range; an object the tip slipped over all the same is pushed
+:func:`preload_cap` (a share of its Z range and of the detector's full scale); an object the tip slipped over all the same is pushed
 harder still by the course's factor (:class:`~.course.Course`).
 
 Why: with the instrument's 100 nm preload on the seed's 0.12 N/m lever (12 nN) the tip
@@ -40,6 +40,18 @@ from nanoasm.world.pivot import rho
 
 #: Largest preload deflection, as a share of the Z range (also the slip factor's cap).
 PRELOAD_CAP = 0.45
+#: ... and as a share of the detector's full scale (the push's own forces need the rest):
+#: 0.8 x 10 V x 89 nm/V is 712 nm, 85 nN on the seed's lever. A rod pushed 0.2 L from its
+#: end once asked for 10.9 V (the bowtie at seed 2), which the DAC path refuses.
+SIGNAL_SHARE = 0.8
+
+
+def preload_cap(config: InstrumentConfig, lever: Cantilever) -> float:
+    """The largest preload deflection (nm) a push may use: :data:`PRELOAD_CAP` of the Z
+    range and :data:`SIGNAL_SHARE` of the detector's full scale, whichever is less (never
+    less than the instrument's own preload)."""
+    detector = SIGNAL_SHARE * lever.full_scale * lever.normal_gain
+    return max(config.preload, min(PRELOAD_CAP * config.z_range, detector))
 
 
 @dataclass(frozen=True)
@@ -95,6 +107,6 @@ def needed_normal_force(body: Body, tip_radius: float, model: ContactModel, sigm
 
 def push_preload(f_z: float, config: InstrumentConfig, lever: Cantilever) -> float:
     """The preload deflection (nm) that presses the tip with ``f_z`` nN on ``lever``, within
-    [the instrument's preload, :data:`PRELOAD_CAP` of the Z range]."""
+    [the instrument's preload, :func:`preload_cap`]."""
     want = f_z / lever.spring_constant if math.isfinite(f_z) else math.inf
-    return min(max(config.preload, want), PRELOAD_CAP * config.z_range)
+    return min(max(config.preload, want), preload_cap(config, lever))

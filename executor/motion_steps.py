@@ -18,7 +18,7 @@ from nanoasm.planner import Operation
 from nanoasm.world.cantilever import Cantilever
 
 from .contact_angle import MIN_FORCE, PushSignals
-from .contact_load import PRELOAD_CAP
+from .contact_load import preload_cap
 from .context import RunContext
 from .dac import plan_dac
 from .progress_docs import PROGRESS, ProgressDoc
@@ -99,7 +99,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     The tip is pressed with ``preload_factor`` times the instrument's preload (seed eq.
     4.7: the normal force that keeps the tip down on the object, :mod:`.contact_load`,
     more after a slip over it), up to
-    :data:`PRELOAD_CAP` of the Z range. With ``lead`` (nm the tip slides in contact
+    :func:`~.contact_load.preload_cap`. With ``lead`` (nm the tip slides in contact
     before it meets the object) the verdict says where the object sat on the tip at the
     end (:mod:`.contact_angle`). With ``track`` (degrees, and ``lead``) that angle is read
     after every chunk of :data:`TRACK_CHUNK` samples, and the push is stopped and the tip
@@ -111,7 +111,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     beyond ``capture`` (the object is not carried), the push has lost its object: "slipped"."""
     cfg = ctx.config
     if preload_factor != 1.0:
-        cfg = replace(cfg, preload=min(cfg.preload * preload_factor, PRELOAD_CAP * cfg.z_range))
+        cfg = replace(cfg, preload=min(cfg.preload * preload_factor, preload_cap(cfg, lever)))
     current = yield Msg("position")
     t0 = yield Msg("clock")
     moves = operation(op.tip_path, push_speed=ctx.options.push_speed)

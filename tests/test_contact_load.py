@@ -17,8 +17,9 @@ from simkit import Events
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
 from nanoasm.dryrun import dry_run
-from nanoasm.executor.contact_load import (PRELOAD_CAP, ContactModel, needed_normal_force, push_point,
+from nanoasm.executor.contact_load import (ContactModel, needed_normal_force, preload_cap, push_point,
                                            push_preload)
+from nanoasm.executor.dac_frames import PushLoad, deflection_offset
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.instrument import InstrumentConfig
 from nanoasm.world.cantilever import SEED_LEVER
@@ -73,10 +74,15 @@ def test_the_push_point_is_measured_from_the_nearer_end():
 def test_the_preload_stays_within_the_instrument_and_presses_at_least_as_asked(force, preload):
     cfg = InstrumentConfig(preload=preload)
     d = push_preload(force, cfg, SEED_LEVER)
-    assert cfg.preload <= d <= PRELOAD_CAP * cfg.z_range
-    if d < PRELOAD_CAP * cfg.z_range:
+    cap = preload_cap(cfg, SEED_LEVER)
+    assert cfg.preload <= d <= cap
+    if d < cap:
         assert d * SEED_LEVER.spring_constant >= force - 1e-9
-    assert push_preload(math.inf, cfg, SEED_LEVER) == PRELOAD_CAP * cfg.z_range
+    assert push_preload(math.inf, cfg, SEED_LEVER) == cap
+    # within the detector's full scale with room for the push's own forces (the DAC path
+    # refuses a preload signal beyond it: 10.9 V once stopped a dry-run)
+    assert PushLoad.from_preload(replace(cfg, preload=cap), SEED_LEVER).sn_bar <= 0.8 * SEED_LEVER.full_scale + 1e-9
+    deflection_offset(PushLoad.from_preload(replace(cfg, preload=cap), SEED_LEVER), 0.0, SEED_LEVER)
 
 
 def _sticky(options: ExecOptions):
