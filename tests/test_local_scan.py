@@ -494,6 +494,24 @@ def test_a_rod_whose_end_touches_a_particle_is_placed_by_its_other_end(gap, d_p)
         assert result.length == pytest.approx(L, abs=3.0)
 
 
+def test_a_particle_a_little_taller_than_the_rod_beside_it_is_not_a_cross_line_hit():
+    """The bundled rods example, seed 1: a cross line found an 88 nm particle (81 nm summit)
+    beside a 74.6 nm rod and took it for the rod; the axis through it was 10 degrees off
+    and the rod placed 85 nm along it from where it lay."""
+    rng = np.random.default_rng(12)
+    L, d = 540.0, 74.6
+    for th in (0.0, 35.0, 120.0):
+        a, n = axis(th), perp(axis(th))
+        truth = MID + rng.uniform(-5, 5, 2)
+        # the particle 60 nm clear of the rod's side, level with the believed centre
+        p_at = truth + n * (d / 2 + 60.0 + 44.0)
+        bodies = [Body("r", "rod", tuple(truth), d, th, L), Body("p", "particle", tuple(p_at), 88.0)]
+        result = run_pattern(rod_before(MID + n * 120.0, th, L, d, 150.0, measure_angle=True),
+                             scanner(bodies, rng))
+        assert result.found, result.reason
+        assert err(result, truth) < 3.0 and angle_err(result.angle, th) < 1.0
+
+
 def test_rod_before_steps_along_the_rod_by_a_quarter_length():
     rng = np.random.default_rng(31)
     d, L, th = 40.0, 240.0, 20.0
