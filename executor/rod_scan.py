@@ -34,19 +34,20 @@ Pattern = Generator[ScanLine, np.ndarray, LocalScanResult]
 
 #: A fit less certain of the angle than this (degrees, 1-sigma) is refused.
 MAX_ANGLE_STD = 10.0
-#: A cross line's bump is the rod only if its summit is within this share of the rod's
-#: believed diameter (plus three noise) of it: identification measures it to about 1 %,
-#: and a particle crossed beside the rod would tilt the axis through the two lines (the
-#: bundled rods example, seed 1: an 81 nm summit beside a 74.6 nm rod put the rod 85 nm
-#: along its axis from where it lay, and the check scan then took the particle in the
-#: next slot for the rod's body).
-ROD_HEIGHT = 0.06
+#: A rod seen at one end only is placed by cross lines whose summits are all within
+#: this share of its believed diameter (identification measures it to about 1 %).
+ONE_END_HEIGHT = 0.1
 
 
-def _is_rod(out: LineOutcome, d: float) -> bool:
-    """Whether a cross line's found bump is of the rod's height (:data:`ROD_HEIGHT`); a
-    grazed end, lower, is left to the caller."""
-    return out.edges.peak is None or out.edges.peak <= (1 + ROD_HEIGHT) * d + 3 * out.edges.noise
+def _is_rod(out: LineOutcome, d: float, opts: ScanOptions) -> bool:
+    """Whether a cross line's found bump is of the rod's height: at most
+    ``opts.rod_height`` above ``d`` (plus three noise). A particle crossed beside the rod
+    would tilt the axis through the two lines: in the bundled rods example (seed 1) an 81 nm
+    summit beside a 74.6 nm rod put the rod 85 nm along its axis from where it lay. A grazed
+    end, lower, is left to the caller."""
+    if opts.rod_height is None or out.edges.peak is None:
+        return True
+    return out.edges.peak <= (1 + opts.rod_height) * d + 3 * out.edges.noise
 
 
 def _rod_args(centre, angle, length, diameter, r_max, names=("centre", "angle")):
@@ -109,7 +110,7 @@ def _rod_before(c, th, L, d, r_max, measure_angle, opts, pattern="rod_before", l
         out = yield from measure_line(_cross_line(c, a_hat, off, reach, opts, f"L{len(lines)}"),
                                       reach, opts)
         lines.append(out)
-        if out.edges.found and _is_rod(out, d):
+        if out.edges.found and _is_rod(out, d, opts):
             hit = off, out
             break
     if hit is None:
@@ -125,7 +126,7 @@ def _rod_before(c, th, L, d, r_max, measure_angle, opts, pattern="rod_before", l
             line = _cross_line(c, a_hat, off2, reach, opts, f"L{len(lines)}")
             out2 = yield from measure_line(line, reach, opts)
             lines.append(out2)
-            if out2.edges.found and _is_rod(out2, d):
+            if out2.edges.found and _is_rod(out2, d, opts):
                 cross.append(out2)
                 break
         if len(cross) < 2:
@@ -237,7 +238,7 @@ def _rod_after(c0, th0, c1, th1, L, d, t_pt, u, delta, sin_alpha, r_max, opts):
         out = yield from measure_line(line, ts[1] - s_lo, opts)
         lines.append(out)
         scanned.append(off)
-        if not out.edges.found or not _is_rod(out, d):
+        if not out.edges.found or not _is_rod(out, d, opts):
             continue
         if out.edges.peak >= AXIS_PEAK * opts.height:
             hits.append((off, out))
@@ -317,13 +318,14 @@ def _misses_ends(line: ScanLine, fit) -> bool:
     return max(abs(float((e - np.asarray(line.a)) @ nrm)) for e in ends) > 0.5 * fit.radius
 
 
-def _one_end(pattern, cross, touches, vline, vout, w, th_ref, L, d, rad0, fix_angle, lines):
+def _one_end(pattern, cross, touches, vline, vout, w, th_ref, L, d, rad0, fix_angle, lines, opts):
     """The outline from the cross lines and the one end line V saw clear (the other ran
     into a touching neighbour or off the line), at the believed length: the rod's
     length is not measured (``length_std`` None)."""
     # without the other end's check of the length, every cross line must be the rod's
     # height: one that crossed a particle beside the rod would tilt the axis
-    if any(abs(o.edges.peak - d) > ROD_HEIGHT * d + 3 * o.edges.noise for o in (*cross, *touches)
+    share = max(ONE_END_HEIGHT, opts.rod_height or 0.0)
+    if any(abs(o.edges.peak - d) > share * d + 3 * o.edges.noise for o in (*cross, *touches)
            if o.edges.peak is not None):
         return missed(pattern, f"line V along the rod saw one end only ({vout.edges.reason}), and a cross "
                       f"line is not of the rod's height", lines)
@@ -369,7 +371,7 @@ def _finish_rod(pattern, cross, w, ref, th_ref, L, d, r_max, opts, fix_angle, li
         if vout.edges.end is None:
             return missed(pattern, f"line V{prime} along the rod found no ends ({vout.edges.reason})",
                           lines)
-        return _one_end(pattern, cross, touches, vline, vout, w, th_ref, L, d, rad0, fix_angle, lines)
+        return _one_end(pattern, cross, touches, vline, vout, w, th_ref, L, d, rad0, fix_angle, lines, opts)
     c0 = vline.at(vout.edges.centre)
     used = [*cross, *touches, vout]
     fit = _fit_lines(used, c0, w, vout.edges.width / 2 - rad0, rad0, fix_angle)

@@ -91,6 +91,11 @@ class ScanOptions:
         A bump on a line higher than this share of ``height`` (plus three noise) is
         another object and never taken for the one looked for (see
         :func:`~.edges.find_edges`); None takes any bump.
+    rod_height : float, optional
+        A rod pattern's cross line is the rod only if its summit is at most this share
+        above the rod's believed diameter (plus three noise; see
+        :mod:`~.rod_scan`); None allows up to ``taller``. A check scan, which looks for
+        any rod its slot takes, uses the slot's size tolerance.
     """
 
     spacing: float | None = param(None, "nm", "distance between samples on a line (None: min(1, R / 10))",
@@ -108,6 +113,8 @@ class ScanOptions:
                                     positive=True)
     taller: float | None = param(TALLER, "-", "a bump higher than this share of the expected height "
                                  "is another object (None: any bump)", optional=True, lo=1.0)
+    rod_height: float | None = param(0.06, "-", "a rod's cross line reads at most this share above its "
+                                     "diameter (None: up to taller)", optional=True, nonnegative=True)
 
     def __post_init__(self) -> None:
         validate(self)

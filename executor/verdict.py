@@ -149,11 +149,12 @@ def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
         # the lines are placed for the length of the rod assigned (a slot takes rods of its
         # length within the size tolerance: lines placed for the slot's length cross
         # beyond the ends of a shorter one); the size check below is the slot's
-        length = target.length
+        # (and its diameter: the lines tell the rod from a particle beside it by its height;
+        # with none assigned, any rod of the slot's size tolerance)
+        length, diameter, opts = target.length, target.diameter, replace(wide, rod_height=tol.size)
         if obj is not None and obj in ctx.belief.objects and ctx.belief[obj].kind == "rod":
-            length = ctx.belief[obj].length
-        pattern = rod_before(at, target.angle, length, target.diameter, reach, measure_angle=True,
-                             options=wide)
+            length, diameter, opts = ctx.belief[obj].length, ctx.belief[obj].diameter, wide
+        pattern = rod_before(at, target.angle, length, diameter, reach, measure_angle=True, options=opts)
     else:
         # short lines: a slot's neighbours in a packed array are a few tens of nm away
         opts = replace(wide, margin=CHECK_MARGIN)

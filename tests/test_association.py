@@ -142,11 +142,14 @@ def test_a_rod_across_a_particle_slot_is_not_taken_for_a_particle(angle):
     assert any("elongated" in e or "a ridge, no particle" in e for e in events)
 
 
-@pytest.mark.parametrize("length", [460.0, 500.0, 600.0, 720.0])
-def test_a_rod_of_any_length_its_slot_takes_is_found_filling_it(length):
+@pytest.mark.parametrize("length, d", [(460.0, 72.0), (500.0, 72.0), (600.0, 72.0), (720.0, 72.0),
+                                       (600.0, 84.0), (600.0, 58.0)])
+def test_a_rod_of_any_size_its_slot_takes_is_found_filling_it(length, d):
     """The check's second cross line was placed for the slot's length (600 nm): it passed
     beyond the ends of a 500 nm rod lying in the slot, which was reported missed (rods
-    family seeds 5 and 7). It is placed for the assigned rod's believed length."""
+    family seeds 5 and 7). It is placed for the assigned rod's believed length, and tells
+    the rod by its believed diameter (84 and 58 nm in a 70 nm slot: the cross lines' 6 %
+    height rule against the slot's diameter refused them)."""
     from simkit import rod
 
     from nanoasm.bodies import Body
@@ -155,8 +158,8 @@ def test_a_rod_of_any_length_its_slot_takes_is_found_filling_it(length):
     from nanoasm.planner.plan import Assignment
 
     layout = Layout((4000.0, 4000.0), (Body("bar", "rod", (1000.0, 2000.0), 70.0, 0.0, 600.0),))
-    (v,), _, events = _run([rod((1004, 1998), 0.8, length, d=72.0, id="r")],
-                           [EnvObject("a", "rod", (1000.0, 2000.0), 72.0, 0.0, length)],
+    (v,), _, events = _run([rod((1004, 1998), 0.8, length, d=d, id="r")],
+                           [EnvObject("a", "rod", (1000.0, 2000.0), d, 0.0, length)],
                            lambda ctx: check_slots(ctx, layout, (Assignment("bar", "a"),)), r_max=40.0)
     assert v.state == "filled" and abs(v.error - math.hypot(4, 2)) < 3.0, events
 

@@ -83,6 +83,7 @@ BAD = [
     (ScanOptions, "max_lines", 1),
     (ScanOptions, "length_tolerance", 0.0),
     (ScanOptions, "taller", 0.9),
+    (ScanOptions, "rod_height", -0.1),
 ]
 
 
