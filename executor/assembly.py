@@ -285,8 +285,7 @@ class Assembly:
         ctx = self.ctx
         w0 = time.perf_counter()
         now = self.ctx.environment()
-        was = self.replanner.plan
-        before = {a.target for a in was.assignment} if was is not None else set()
+        before = {a.target for a in (self.replanner.plan.assignment if self.replanner.plan else ())}
         rest = self.replanner.remainder(now, done, force=True, pivot_offsets=ctx.pivots.offsets(now.objects))
         ctx.ledger.wall["plan"] += time.perf_counter() - w0
         ctx.ledger.counts["replans"] += 1
