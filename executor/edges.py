@@ -207,11 +207,11 @@ def _merge(runs: list[tuple[int, int]], y: np.ndarray, floor: float) -> list[tup
     return out
 
 
-def _deepest_dip(y: np.ndarray) -> float:
-    """Largest drop of ``y`` below the lower of the highest values on its either side."""
+def _dips(y: np.ndarray) -> np.ndarray:
+    """Each sample's drop below the lower of the highest values on its either side."""
     left = np.maximum.accumulate(y)
     right = np.maximum.accumulate(y[::-1])[::-1]
-    return float((np.minimum(left, right) - y).max())
+    return np.minimum(left, right) - y
 
 
 def _clear_end(y: np.ndarray, run: tuple[int, int], expected: float, level: float, h: float,
@@ -222,8 +222,7 @@ def _clear_end(y: np.ndarray, run: tuple[int, int], expected: float, level: floa
     the side of ``expected`` away from the dip between them. None when neither holds."""
     i, j = run
     n = y.size
-    seg = y[i:j + 1]
-    dips = np.minimum(np.maximum.accumulate(seg), np.maximum.accumulate(seg[::-1])[::-1]) - seg
+    dips = _dips(y[i:j + 1])
     if i > 0 and j < n - 1:
         if dips.max() <= dip_limit:
             return None
@@ -348,7 +347,7 @@ def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
         if not inner:
             return miss(TALLER_ONLY, len(runs), end=True)
     i, j = min(inner, key=distance)
-    if _deepest_dip(y[i:j + 1]) > dip_limit:
+    if float(_dips(y[i:j + 1]).max()) > dip_limit:
         return miss(TOUCHING, len(runs), end=True)
     left, left_std = _crossing(y, i - 1, i, level, h, noise)
     right, right_std = _crossing(y, j + 1, j, level, h, noise)

@@ -302,12 +302,16 @@ def _axis_line(mids, w, ref, L, r_max, opts, role):
     return line, ts[0] - s_lo
 
 
-def _fit_lines(outcomes, c0, w, half0, rad0, fix_angle):
+def _fit_lines(outcomes, c0, w, half0, rad0, fix_angle, end=None):
+    """The outline through the crossings of ``outcomes``; with ``end`` (a line's one clear
+    crossing: point, line direction, 1-σ), through it too at the half-length ``half0``."""
     pts = np.concatenate([o.crossings() for o in outcomes])
     dirs = np.repeat([o.line.direction for o in outcomes], 2, axis=0)
     stds = np.array([s for o in outcomes for s in (o.edges.left_std, o.edges.right_std)])
+    if end is not None:
+        pts, dirs, stds = np.vstack([pts, end[0]]), np.vstack([dirs, end[1]]), np.append(stds, end[2])
     ang = math.degrees(math.atan2(w[1], w[0]))
-    return fit_capsule(pts, dirs, stds, c0, ang, half0, rad0, fix_angle=fix_angle)
+    return fit_capsule(pts, dirs, stds, c0, ang, half0, rad0, fix_angle=fix_angle, fix_half=end is not None)
 
 
 def _misses_ends(line: ScanLine, fit) -> bool:
@@ -331,14 +335,9 @@ def _one_end(pattern, cross, touches, vline, vout, w, th_ref, L, d, rad0, fix_an
                       f"line is not of the rod's height", lines)
     at, std, side = vout.edges.end
     end_pt = vline.at(at)
-    pts = np.concatenate([*(o.crossings() for o in (*cross, *touches)), end_pt[None, :]])
-    dirs = np.concatenate([np.repeat([o.line.direction for o in (*cross, *touches)], 2, axis=0),
-                           [vline.direction]])
-    stds = np.array([*(s for o in (*cross, *touches) for s in (o.edges.left_std, o.edges.right_std)), std])
     half = (L - d) / 2
     c0 = end_pt - side * (half + rad0) * vline.direction
-    fit = fit_capsule(pts, dirs, stds, c0, math.degrees(math.atan2(w[1], w[0])), half, rad0,
-                      fix_angle=fix_angle, fix_half=True)
+    fit = _fit_lines([*cross, *touches], c0, w, half, rad0, fix_angle, end=(end_pt, vline.direction, std))
     if fit is None:
         return missed(pattern, f"line V along the rod saw one end only ({vout.edges.reason}), and the "
                       f"crossings do not place the rod by it", lines)

@@ -146,11 +146,10 @@ def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
     wide = replace(ctx.scan_opts, taller=None if ctx.scan_opts.taller is None
                    else max(ctx.scan_opts.taller, 1.0 + tol.size))
     if target.kind == "rod":
-        # the lines are placed for the length of the rod assigned (a slot takes rods of its
-        # length within the size tolerance: lines placed for the slot's length cross
-        # beyond the ends of a shorter one); the size check below is the slot's
-        # (and its diameter: the lines tell the rod from a particle beside it by its height;
-        # with none assigned, any rod of the slot's size tolerance)
+        # the lines are placed for the assigned rod's length and tell it by its diameter
+        # (placed for the slot's, they crossed beyond the ends of a shorter rod the slot
+        # takes); with none assigned, for the slot's, any rod of its size tolerance. The
+        # size check below is the slot's.
         length, diameter, opts = target.length, target.diameter, replace(wide, rod_height=tol.size)
         if obj is not None and obj in ctx.belief.objects and ctx.belief[obj].kind == "rod":
             length, diameter, opts = ctx.belief[obj].length, ctx.belief[obj].diameter, wide

@@ -99,8 +99,11 @@ def describe(target: Body, tol: Tolerance) -> str:
     return f"particle of diameter {target.diameter:g} +/- {pct}"
 
 
-def match(layout: Layout, objects: Sequence[EnvObject], options: PlanOptions) -> Matching:
-    """Assign objects to the layout's slots."""
+def match(layout: Layout, objects: Sequence[EnvObject], options: PlanOptions,
+          held: Sequence[EnvObject] = ()) -> Matching:
+    """Assign objects to the layout's slots. ``held``: objects that lie there but may not
+    be pushed (given up by a run, cut by the scan's edge, unsure, a rod on a keep-out); a
+    slot that no object fits says so when some of them would."""
     tol = layout.tolerance
     pool = [o for o in objects if assignable(o, options)]
     staying: list[tuple[str, str]] = []
@@ -132,6 +135,11 @@ def match(layout: Layout, objects: Sequence[EnvObject], options: PlanOptions) ->
         n = sum(compatible(t, o, tol) for o in pool)
         if n == 0:
             reason = f"no {describe(t, tol)}"
+            ids = [o.id for o in held if compatible(t, o, tol)]
+            if ids:
+                some = ", ".join(repr(i) for i in ids[:3]) + (f" and {len(ids) - 3} more" if len(ids) > 3 else "")
+                reason += (f" that may be pushed ({some} may not: given up, at the scan's edge, unsure "
+                           f"or on a keep-out)")
         else:
             reason = f"all {n} compatible {t.kind}s are used by other slots"
         unfilled.append(Unfilled(t.id, reason))

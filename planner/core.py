@@ -213,17 +213,6 @@ class _Session:
 SPARES = 2
 
 
-def _held_too(u: Unfilled, target: Body, held: list[EnvObject], layout: Layout) -> Unfilled:
-    """``u``, its reason completed when objects that would fit lie there but may not be
-    pushed (given up by the run, cut by the scan's edge, unsure, a rod on a keep-out)."""
-    ids = [o.id for o in held if compatible(target, o, layout.tolerance)]
-    if not ids or not u.reason.startswith("no "):
-        return u
-    some = ", ".join(repr(i) for i in ids[:3]) + (f" and {len(ids) - 3} more" if len(ids) > 3 else "")
-    return Unfilled(u.target, f"{u.reason} that may be pushed ({some} may not: given up, "
-                              f"at the scan's edge, unsure or on a keep-out)")
-
-
 def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None = None,
                   progress: Progress | None = None, pivot_offsets: dict[str, float] | None = None
                   ) -> tuple[Plan, PlanStats]:
@@ -239,7 +228,8 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
     s.rods.offsets = dict(pivot_offsets or {})
     on_obstacle = slots_on_obstacles(layout, env)       # no object can be put there: named, not "no path"
     free = replace(layout, targets=tuple(t for t in layout.targets if t.id not in on_obstacle))
-    matching = match(free, [o for o in env.objects if o.id not in s.fixed_ids], options)
+    matching = match(free, [o for o in env.objects if o.id not in s.fixed_ids], options,
+                     held=[o for o in env.objects if o.id in s.fixed_ids])
     efforts = {t: effort(s.targets[t], s.objects[o]) for t, o in matching.moves}
     nodes, blocked = order(matching.moves, s.targets, s.objects, s.fixed_ids, options.clearance, efforts)
     object_of = dict(matching.moves)
@@ -247,10 +237,7 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
         s.placed.add(o)
 
     done: list[tuple[str, str]] = []
-    # "no particle of diameter d" where such objects lie, but none may be pushed, says so
-    held = [o for o in env.objects if o.id in s.fixed_ids]
-    unfilled = [_held_too(u, s.targets[u.target], held, layout) for u in matching.unfilled]
-    unfilled += [Unfilled(t, why) for t, why in on_obstacle.items()]
+    unfilled = list(matching.unfilled) + [Unfilled(t, why) for t, why in on_obstacle.items()]
     unfilled += [Unfilled(t, f"slot is held by {s.objects[h].kind} {h!r}, which cannot be pushed")
                  for t, h in sorted(blocked.items())]
     for i, (kind, key) in enumerate(nodes):

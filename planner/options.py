@@ -43,14 +43,15 @@ class PlanOptions:
         Seeds OMPL's sampler so a plan is reproducible.
     rod_swing : float
         Largest rotation, degrees, of one rod push (one half of a zigzag step). 45° by
-        default: over 10 seeds of the rods, mixed and device families it took half the
-        pushes of 20° (rods: 24 against 53.5 a run) and filled as many rod slots or more
-        (``bench/RESULTS_rods.md``); the search still has swings of a half and a quarter
-        of it, and the finish down to 0.5°.
+        default: over 10 seeds each of the rods, mixed and device families it took 0.45,
+        0.58 and 0.74 times the pushes a run of 20° (median) and filled as many rod slots
+        or more (``bench/RESULTS_rods.md``); the search still has swings of a half and a
+        quarter of it, and the finish down to 0.5°.
     rod_push_point : float
         Push point of rod pushes as a fraction of the length from the pushed end; kept
         well away from the bifurcation at L/2 (seed eq. 4.10). 0.2 by default (measured
-        with the 45° swing; the tip holds a rod to l ≈ 0.32 L at the default preload).
+        with the 45° swing; issue 14's audit found the tip slipping off rods beyond
+        l ≈ 0.32 L at the instrument's preload).
     align : str
         How a layout with alignment marks is registered to the scan before planning
         (:mod:`nanoasm.planner.alignment`): ``rigid`` (rotation and translation),
