@@ -178,7 +178,9 @@ def test_ctrl_c_stops_a_dry_run_with_exit_130_and_one_line(tmp_path):
 
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     proc = subprocess.Popen([sys.executable, "-m", "nanoasm.cli", "dry-run"], cwd=tmp_path, env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            # a shell may start us with SIGINT ignored, which the child would inherit
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     time.sleep(4.0)                       # into the full scan or the plan
     proc.send_signal(signal.SIGINT)
     _, err = proc.communicate(timeout=120)

@@ -163,7 +163,9 @@ def test_the_lines_are_in_the_file_while_the_run_goes_on(tmp_path):
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     with open(out, "w") as f:
         proc = subprocess.Popen([sys.executable, "-m", "nanoasm.cli", "dry-run"], cwd=tmp_path, env=env,
-                                stdout=f, stderr=subprocess.PIPE, text=True)
+                                stdout=f, stderr=subprocess.PIPE, text=True,
+                                # a shell may start us with SIGINT ignored, which the child would inherit
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         try:
             deadline = time.monotonic() + 60.0          # the bundled bowtie: half a minute in all
             while "INFO phase: identify" not in out.read_text() and time.monotonic() < deadline:

@@ -21,6 +21,19 @@ from nanoasm.executor.resume import resume_point
 from nanoasm.simkeep import read_sim_state, sim_state_path
 
 
+@pytest.fixture(autouse=True)
+def _ctrl_c_as_in_a_terminal():
+    """Ctrl-C raises KeyboardInterrupt here, as in a program started from a terminal: a
+    shell that starts the tests in the background (``cmd &``, nohup) starts them with
+    SIGINT ignored, and a run keeps it so (test_an_ignored_ctrl_c_stays_ignored). These
+    tests failed in a clean-clone CI started that way."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 class SlowToClose(Recorder):
     """A subscriber that receives ``signum`` while it closes (as a log does while it
     writes its summary), then finishes closing."""
