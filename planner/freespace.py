@@ -134,7 +134,7 @@ class FreeSpace:
                          clearance, set(exempt_fixed)):
             return False
         self._index()
-        skip = {k for k, i in enumerate(self._ids) if i in set(ignore)}
+        skip = {self._slot[i] for i in set(ignore) if i in self._slot}
         return not self._any_hit(geoms, radius, self._tree, self._cores, self._radii, self._rmax,
                                  clearance, skip)
 

@@ -281,18 +281,24 @@ class RodController:
         def key(p: Body) -> tuple:
             return (round(p.at[0] / cell), round(p.at[1] / cell), round((p.angle % 180.0) / 6.0) % 30)
 
-        # lazy weighted A*: an edge's collision checks run when its node is popped
+        # lazy weighted A*: an edge's collision checks run when its node is popped; a
+        # child is a tuple (x, y, angle) until then, made a Body only when popped
+        ends = [m.poses[-1] for m in far]
+        half, r = max((rod.length - rod.diameter) / 2, 0.0), rod.radius
+        w, hgt = self.space.area
+        gx, gy, ga = goal.at[0], goal.at[1], goal.angle
+        swing = self.options.rod_swing
         counter = 0
-        heap = [(h(rod), 0, counter, rod, None, None)]
+        heap = [(h(rod), 0, counter, rod, key(rod), None, None)]
         closed: set[tuple] = set()
         expansions = 0
         while heap and expansions < self.max_expansions and not self.allowance.exhausted():
-            _, g, _, pose, parent, macro = heapq.heappop(heap)
-            k = key(pose)
+            _, g, _, pose, k, parent, macro = heapq.heappop(heap)
             if k in closed:
                 continue
             trail = None
             if parent is not None:
+                pose = Body(rod.id, "rod", (pose[0], pose[1]), rod.diameter, pose[2], rod.length)
                 step = self._realise(parent[0], macro)
                 if step is None:
                     continue
@@ -306,12 +312,21 @@ class RodController:
                 return pushes
             expansions += 1
             self.allowance.spend()
-            for m in far:
-                after = _place(pose, m.poses[-1])
-                if key(after) in closed or not self.space.inside(after.geometry(), after.radius):
+            c, s = _unit(pose.angle)
+            px, py, pa = pose.at[0], pose.at[1], pose.angle
+            for m, (mx, my, ma) in zip(far, ends):
+                # as _place(pose, m.poses[-1]), key() and space.inside() of its core
+                x, y, a = px + c * mx - s * my, py + s * mx + c * my, pa + ma
+                ck = (round(x / cell), round(y / cell), round((a % 180.0) / 6.0) % 30)
+                if ck in closed:
                     continue
+                ca, sa = _unit(a)
+                x0, x1, y0, y1 = x - half * ca, x + half * ca, y - half * sa, y + half * sa
+                if not (min(x0, x1) >= r and min(y0, y1) >= r and max(x0, x1) <= w - r and max(y0, y1) <= hgt - r):
+                    continue
+                hv = 2.0 * max(math.dist((x, y), (gx, gy)) / lateral, abs(math.remainder(ga - a, 180.0)) / swing)
                 counter += 1
-                heapq.heappush(heap, (g + m.size + h(after), g + m.size, counter, after, (pose, trail), m))
+                heapq.heappush(heap, (g + m.size + hv, g + m.size, counter, (x, y, a), ck, (pose, trail), m))
         return None
 
     def _finish(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body, bool]:
