@@ -153,6 +153,9 @@ class DriftFilter:
         # learnt, the amplitude's uncertainty is the state's; the input itself is nominal
         self.creep = CreepHistory(replace(p.creep, amplitude_std=0.0) if self.learn_creep else p.creep)
         self.history: list[HistoryEntry] = []
+        #: steps that revised the estimate other than by time (measurements, resets): a
+        #: position converted with it before and after one differs by the revision
+        self.revision = 0
         self._commit(self._tau, 0.0, self._x, self._L, self._x, self._L, np.zeros((n, 0)), "start")
         self.measurements: list[Measurement] = []
         self._anchor = (0, self._tau)  # history index and tau of the last accepted state
@@ -279,6 +282,8 @@ class DriftFilter:
         if creep is None:
             creep, creep_sqrt = self.creep.offset(tau), self.creep.cov_sqrt(tau)
         self._tau, self._x, self._L = tau, x.copy(), L.copy()
+        if kind not in ("predict", "move", "inflate"):
+            self.revision += 1
         self.history.append(HistoryEntry(
             self.epoch + tau, x.copy(), gram(L), x_prior.copy(), gram(L_prior), dt,
             np.asarray(creep, float).copy(), creep_sqrt @ creep_sqrt.T, kind, L.copy(),

@@ -47,6 +47,7 @@ class DriftEstimator(Protocol):
     uses_landmarks: bool
 
     def offset(self, t: float) -> np.ndarray: ...
+    def revision(self) -> object: ...
     def compensation(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]: ...
     def velocity(self) -> np.ndarray: ...
     def unskew(self, at: np.ndarray, tau: float) -> np.ndarray: ...
@@ -93,6 +94,10 @@ class NoDrift:
 
     def velocity(self) -> np.ndarray:
         return np.zeros(2)
+
+    def revision(self) -> object:
+        """A token equal to an earlier one while the estimate was not revised since."""
+        return tuple(self.drift)
 
     def compensation(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
         """The creep (nm, nominal amplitude) within ``offset(t1) - offset(t0)``, by which

@@ -133,6 +133,10 @@ class Kalman:
                     + theta[LAM] * self.filter.creep.tau_sensitivity(tau))
         return self.origin + np.asarray(self.filter.offset(t).offset, float)
 
+    def revision(self) -> object:
+        """Equal to an earlier token while no measurement or reset revised the estimate."""
+        return (self._bootstrapping(), self.filter, self.filter.revision)
+
     def offset_cov(self, t: float) -> np.ndarray:
         """Covariance (nm²) of :meth:`offset` at ``t`` (creep's uncertainty included)."""
         if self._bootstrapping():

@@ -56,6 +56,21 @@ def _locate_start(ctx: RunContext, obj_id: str):
     return None if found is None else found[:3]
 
 
+def _fresh(ctx: RunContext, obj_id: str):
+    """Whether the push of ``obj_id`` may start from its belief without a scan: the last
+    push's after-scan located it at most ``trust_after_scan`` ago, nothing was pushed
+    since, and no measurement revised the drift estimate since (a reference or a
+    relocalisation in between would leave the belief in the old estimate's frame)."""
+    last = ctx.last_after
+    if last is None or ctx.options.trust_after_scan <= 0 or not ctx.options.strategy.kalman:
+        return False
+    seen_id, t, revision, pushes = last
+    if seen_id != obj_id or pushes != ctx.ledger.counts["pushes"] or revision != ctx.drift.revision():
+        return False
+    now = yield Msg("clock")
+    return now - t <= ctx.options.trust_after_scan
+
+
 #: The contact mechanics the preload is chosen by: the seed's nominal values (contact_load).
 CONTACT = ContactModel()
 
@@ -99,22 +114,24 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
         yield from keep_track(ctx)
         yield from take_reference(ctx, start.at, obj_id)
         yield from keep_track(ctx)
-        found = yield from _locate_start(ctx, obj_id)
-        if found is None:
-            _lost(ctx, obj_id)
-            yield Msg("event", (f"{obj_id} lost: not found within {ctx.options.lost_radius:.0f} nm",),
-                      {"level": "error"})
-            _quarantine(ctx, op, [start], plan_options, (yield Msg("clock")))
-            return "lost"
-        measured, cov, t = found
-        measured = ctx.to_layout(measured, t)       # with the drift as now estimated
-        ctx.observe(obj_id, measured.at, t, cov, angle=measured.angle)
+        if not (yield from _fresh(ctx, obj_id)):
+            found = yield from _locate_start(ctx, obj_id)
+            if found is None:
+                _lost(ctx, obj_id)
+                yield Msg("event", (f"{obj_id} lost: not found within {ctx.options.lost_radius:.0f} nm",),
+                          {"level": "error"})
+                _quarantine(ctx, op, [start], plan_options, (yield Msg("clock")))
+                return "lost"
+            measured, cov, t = found
+            measured = ctx.to_layout(measured, t)       # with the drift as now estimated
+            ctx.observe(obj_id, measured.at, t, cov, angle=measured.angle)
+            if ctx.belief[obj_id].kind == "rod":
+                ctx.pivots.seen(ctx.belief[obj_id], cov)
         start = ctx.belief[obj_id]
         if start.kind == "rod":
             at, angle = course.starts.get(op.id, (start.at, start.angle))
             expected = Body(obj_id, "rod", at, start.diameter, angle, start.length)
             op = rod_push(op, expected, start)
-            ctx.pivots.seen(start, cov)
         else:
             op = particle_push(op, start.at, start.radius, plan_options.tip_radius, plan_options.lead)
             if op is None:
@@ -164,6 +181,7 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
             course.slipped(obj_id)
         if body.kind == "rod":
             (ctx.pivots.restart if verdict.failed else ctx.pivots.seen)(body, cov)
+        ctx.last_after = (obj_id, t, ctx.drift.revision(), ledger.counts["pushes"])
     t_end = yield Msg("clock")
     _quarantine(ctx, op, [start, ctx.belief[obj_id]], plan_options, t_end)
     doc = {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,

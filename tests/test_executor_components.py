@@ -304,3 +304,53 @@ def test_the_stuck_test_leaves_out_the_tips_own_friction_on_the_substrate():
     assert ExecOptions().substrate_friction == 0.0
     with pytest.raises(ValueError):
         ExecOptions(substrate_friction=-0.1)
+
+
+def test_a_push_starts_from_the_last_after_scan_only_while_nothing_changed_since():
+    """The before-scan is left out when the last push's after-scan located the same object,
+    nothing was pushed since, no measurement revised the drift estimate and the scan is
+    recent (issue 16); any of these failing scans first."""
+    from nanoasm.executor.pushing import _fresh
+
+    est, belief, refs = _kalman_setup()
+    ctx = RunContext(InstrumentConfig(), ExecOptions(strategy="full"), est, belief, refs, moving={"p"})
+    fake = FakeInstrument(ctx.config)
+    fake.t = 20.0
+
+    def fresh(obj="p"):
+        return drive(_fresh(ctx, obj), fake)
+
+    assert not fresh()                                               # no after-scan yet
+    ctx.ledger.counts["pushes"] = 3
+    ctx.last_after = ("p", 15.0, est.revision(), 3)
+    assert fresh()
+    assert not fresh("r1")                                           # another object's scan
+    ctx.ledger.counts["pushes"] = 4                                  # something pushed since
+    assert not fresh()
+    ctx.ledger.counts["pushes"] = 3
+    fake.t = 15.0 + ctx.options.trust_after_scan + 1.0               # too old
+    assert not fresh()
+    fake.t = 20.0
+    est.measure("r1", (1001.0, 1000.0), np.eye(2), 18.0, refs, ["p"], set())   # a reference since
+    assert not fresh()
+    ctx.last_after = ("p", 19.0, est.revision(), 3)
+    assert fresh()
+    ctx.options = ExecOptions(strategy="full", trust_after_scan=0.0)  # off
+    assert not fresh()
+    ctx.options = ExecOptions(strategy="local-scan")                  # no filter to trust
+    assert not fresh()
+
+
+def test_the_drift_filter_counts_revisions_not_time():
+    from nanoasm.drift import DriftFilter
+
+    f = DriftFilter()
+    r0 = f.revision
+    f.predict_to(10.0)
+    f.record_move(11.0, (3000.0, 0.0))
+    f.inflate(offset_std=1.0)
+    assert f.revision == r0
+    f.measure(12.0, (1.0, 0.0))
+    assert f.revision == r0 + 1
+    f.reinitialise(13.0, (0.0, 0.0), np.eye(2))
+    assert f.revision == r0 + 2
