@@ -14,7 +14,9 @@ Fewest lines (seed 5.2-5.3; the patterns of :mod:`~nanoasm.executor.local_scan` 
 :mod:`~nanoasm.executor.rod_scan` when the first line finds the object): a particle
 needs two lines before a push (L0 and V across it) and two after (L'0, V'); a rod needs
 three before (two cross lines for its angle, as the executor measures it, and V along
-its axis) and three after (two lines along the push that cross it, and V).
+its axis) and three after (two lines along the push that cross it, and V). A push of the
+object the previous push moved needs none before it: that push's lines after it located
+the object (the executor starts from them, ``ExecOptions.trust_after_scan``).
 
 Shortest line: a line must cross the object's image from substrate to substrate to find
 both edges, and a tip of apex radius ``r`` widens that image by ``r`` on each side: a
@@ -145,17 +147,17 @@ def physical_bound(plan: Plan, options: ExecOptions | None = None, config: Instr
     bodies = _bodies(objects)
     v_push = config.max_speed if options.push_speed is None else min(options.push_speed, config.max_speed)
     push_s = scan_s = travel_s = 0.0
-    prev_end = None
+    prev_end = prev_object = None
     prev_scan = 0.0       # minimal scan length after the previous push, nm
     for op in plan.operations:
         push_s += path_length(op.tip_path) / v_push
         length, diameter, lines = _scan_lines(op, bodies.get(op.object), tip_radius)
+        before = 0.0 if op.object == prev_object else length / 2
         if lines:
             scan_speed = scan.resolved(diameter).spacing / timing.scan_line_sample
-            scan_s += length / scan_speed
-        before = length / 2
+            scan_s += (before + length / 2) / scan_speed
         if prev_end is not None:
             gap = math.dist(prev_end, op.tip_path[0]) - prev_scan - before
             travel_s += max(gap, 0.0) / config.max_speed
-        prev_end, prev_scan = op.tip_path[-1], length / 2
+        prev_end, prev_scan, prev_object = op.tip_path[-1], length / 2, op.object
     return Bound(push_s, scan_s, travel_s)

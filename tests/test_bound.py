@@ -77,6 +77,19 @@ def test_rods_count_three_lines_before_and_after():
     assert b.scan_s == pytest.approx(2 * (2 * 100.0 + 820.0) / 1000.0)
 
 
+def test_a_push_of_the_object_just_pushed_needs_no_lines_before_it():
+    # the after-scan of the first push located it: the second counts its after-lines only,
+    # and the travel between them loses no before-scan
+    a = push(1, "p", (0.0, 0.0), (1000.0, 0.0), (1060.0, 0.0))
+    b = push(2, "p", (1060.0, -60.0), (1060.0, 940.0), (1060.0, 1000.0))
+    one = physical_bound(Plan("x", operations=(a,)))
+    both = physical_bound(Plan("x", operations=(a, b)))
+    assert both.scan_s == pytest.approx(one.scan_s * 1.5)              # 4 + 2 lines of 120 nm
+    assert both.travel_s == 0.0                     # 85 nm apart, within the after-lines' 240 nm
+    other = push(2, "q", (1060.0, -60.0), (1060.0, 940.0), (1060.0, 1000.0))
+    assert physical_bound(Plan("x", operations=(a, other))).scan_s == pytest.approx(one.scan_s * 2)
+
+
 def test_an_empty_plan_is_free():
     assert physical_bound(Plan("x")) == Bound(0.0, 0.0, 0.0)
 
