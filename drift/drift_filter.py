@@ -170,7 +170,8 @@ class DriftFilter:
         gating streak are not kept)."""
         c = self.creep
         return {"epoch": self.epoch, "tau": self._tau, "x": self._x.tolist(), "L": self._L.tolist(),
-                "measured": len(self.measurements), "statics": self.statics - int(self.learn_creep),
+                "measured": len(self.measurements), "revision": self.revision,
+                "statics": self.statics - int(self.learn_creep),
                 "learn_creep": self.learn_creep, "tau_static": self.tau_static,
                 "creep": {"frozen": c.frozen.tolist(), "times": c.times.tolist(), "steps": c.steps.tolist(),
                           "frozen_steps": c.frozen_steps.tolist()}}
@@ -199,6 +200,7 @@ class DriftFilter:
         f._commit(tau, 0.0, x, L, x, L, np.zeros((x.shape[0], 0)), "resume")
         f._anchor = (len(f.history) - 1, tau)
         f.resumed_measurements = int(state.get("measured", 0))
+        f.revision = int(state.get("revision", 0))      # going on is no revision
         return f
 
     # -- state ----------------------------------------------------------------------------

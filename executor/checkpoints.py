@@ -41,7 +41,7 @@ def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str
         "belief": ctx.belief.state_dict(), "estimator": ctx.drift.state_dict(),
         "references": ctx.refs.state_dict(), "course": asm.course.state_dict(),
         "landmarks": ctx.landmarks.state_dict(), "line_timing": ctx.timing.state_dict(),
-        "pivots": ctx.pivots.state_dict(),
+        "pivots": ctx.pivots.state_dict(), "last_after": ctx.last_after,
         "moving": sorted(ctx.moving), **ctx.ledger.state_dict(),
         "drift": ctx.ledger.drift[-1] if ctx.ledger.drift else None}
 
@@ -69,6 +69,7 @@ def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]
     asm.course = Course.from_state(st["course"])
     asm.ctx.landmarks = Landmarks.from_state(st.get("landmarks"))
     asm.ctx.pivots = Pivots.from_state(st.get("pivots"))
+    asm.ctx.last_after = st.get("last_after")
     if st.get("line_timing"):
         asm.ctx.timing = LineTiming.from_state(st["line_timing"])
     asm.ctx.full_scan, asm.ctx.env_objects = st.get("full_scan"), asm.env.objects

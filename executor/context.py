@@ -69,10 +69,9 @@ class RunContext:
     pivots: Pivots = field(default_factory=Pivots)
     baselines: Any = None               # the detector's BaselineMaps (eq. 3.28-3.29); None: free air
     surveyed: list = field(default_factory=list)
-    #: the last push's after-scan: (object, its time, the drift offset then, pushes so
-    #: far), from which the next push of that object may start (:mod:`.pushing`; not in
-    #: checkpoints: a resumed run scans first)
-    last_after: tuple | None = None
+    #: the last push's after-scan: [object, its time, the drift estimate's revision then,
+    #: pushes so far], from which the next push of that object may start (:mod:`.pushing`)
+    last_after: list | None = None
 
     def __post_init__(self) -> None:
         if self.scan_opts is None:

@@ -97,7 +97,7 @@ class NoDrift:
 
     def revision(self) -> object:
         """A token equal to an earlier one while the estimate was not revised since."""
-        return tuple(self.drift)
+        return [float(v) for v in self.drift]
 
     def compensation(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
         """The creep (nm, nominal amplitude) within ``offset(t1) - offset(t0)``, by which

@@ -90,10 +90,11 @@ class Kalman:
                        np.eye(k, PARAMETERS), np.eye(1, PARAMETERS, LAM), np.eye(1, PARAMETERS, EPS) * c])
         x0 = M @ self.scan.theta
         P0 = M @ self.scan.cov @ M.T
-        P0[:2, :2] += np.eye(2) * 4.0
-        P0[2:4, 2:4] += np.eye(2) * 1e-6
-        self.filter = DriftFilter(self.params, epoch=self.epoch, x0=x0, P0=0.5 * (P0 + P0.T), statics=k + 1,
-                                  start=tau, learn_creep=True, tau_static=k)
+        P0[:2, :2], P0[2:4, 2:4] = P0[:2, :2] + np.eye(2) * 4.0, P0[2:4, 2:4] + np.eye(2) * 1e-6
+        revision, self.filter = self.filter.revision, DriftFilter(
+            self.params, epoch=self.epoch, x0=x0, P0=0.5 * (P0 + P0.T), statics=k + 1, start=tau,
+            learn_creep=True, tau_static=k)
+        self.filter.revision = revision + 1
         for t_move, step in self.move_log:
             self.filter.creep.record(t_move - self.epoch, step)
 
@@ -133,9 +134,8 @@ class Kalman:
                     + theta[LAM] * self.filter.creep.tau_sensitivity(tau))
         return self.origin + np.asarray(self.filter.offset(t).offset, float)
 
-    def revision(self) -> object:
-        """Equal to an earlier token while no measurement or reset revised the estimate."""
-        return (self._bootstrapping(), self.filter, self.filter.revision)
+    def revision(self) -> object:    # equal to an earlier one while nothing revised the estimate
+        return [self._bootstrapping(), self.filter.revision]
 
     def offset_cov(self, t: float) -> np.ndarray:
         """Covariance (nm²) of :meth:`offset` at ``t`` (creep's uncertainty included)."""

@@ -68,7 +68,10 @@ def _fresh(ctx: RunContext, obj_id: str):
     if seen_id != obj_id or pushes != ctx.ledger.counts["pushes"] or revision != ctx.drift.revision():
         return False
     now = yield Msg("clock")
-    return now - t <= ctx.options.trust_after_scan
+    if now - t > ctx.options.trust_after_scan:
+        return False
+    yield from emit_drift(ctx, now)          # the estimate this push goes by, as a scan's would be
+    return True
 
 
 #: The contact mechanics the preload is chosen by: the seed's nominal values (contact_load).
@@ -181,7 +184,7 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
             course.slipped(obj_id)
         if body.kind == "rod":
             (ctx.pivots.restart if verdict.failed else ctx.pivots.seen)(body, cov)
-        ctx.last_after = (obj_id, t, ctx.drift.revision(), ledger.counts["pushes"])
+        ctx.last_after = [obj_id, float(t), ctx.drift.revision(), ledger.counts["pushes"]]
     t_end = yield Msg("clock")
     _quarantine(ctx, op, [start, ctx.belief[obj_id]], plan_options, t_end)
     doc = {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,

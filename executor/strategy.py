@@ -130,10 +130,12 @@ class ExecOptions:
         Half-size of the widening search for an object that is not where expected, nm.
     trust_after_scan : float
         A push starts from where its object's last after-scan put it, without a scan
-        before, when that scan is at most this old (s), nothing was pushed since and the
-        drift estimate at that scan's time has moved by less than 1 nm since (issue 16:
-        the before-scan of a rod's next push repeated the after-scan of its last); 0:
-        every push scans first.
+        before, when that scan is at most this old (s), nothing was pushed since and no
+        measurement revised the drift estimate since (issue 16: the before-scan of a
+        rod's next push repeated the after-scan of its last). 0, the default: every push
+        scans first. At 60 s the rods family took 14 % less instrument time after the full
+        scan at equal fill, but a drift jump between two pushes of one object then costs a
+        push made from the stale position (``bench/RESULTS.md``).
     push_speed : float or None
         Tip speed while pushing, nm/s (None: the scanner's limit).
     chunk : int
@@ -194,7 +196,7 @@ class ExecOptions:
     replan_after: float = param(60.0, "nm", "deviation from the planned course that replans (full)",
                                 positive=True)
     lost_radius: float = param(1500.0, "nm", "half-size of the search for a lost object", positive=True)
-    trust_after_scan: float = param(60.0, "s", "age of an after-scan a push may start from without a scan "
+    trust_after_scan: float = param(0.0, "s", "age of an after-scan a push may start from without a scan "
                                     "before (0: always scan first)", nonnegative=True)
     push_speed: float | None = param(200.0, "nm/s", "tip speed while pushing (None: the scanner's limit)",
                                      optional=True, positive=True, lo=MIN_PUSH_SPEED)

@@ -313,7 +313,8 @@ def test_a_push_starts_from_the_last_after_scan_only_while_nothing_changed_since
     from nanoasm.executor.pushing import _fresh
 
     est, belief, refs = _kalman_setup()
-    ctx = RunContext(InstrumentConfig(), ExecOptions(strategy="full"), est, belief, refs, moving={"p"})
+    ctx = RunContext(InstrumentConfig(), ExecOptions(strategy="full", trust_after_scan=60.0), est, belief, refs,
+                     moving={"p"})
     fake = FakeInstrument(ctx.config)
     fake.t = 20.0
 
@@ -335,9 +336,9 @@ def test_a_push_starts_from_the_last_after_scan_only_while_nothing_changed_since
     assert not fresh()
     ctx.last_after = ("p", 19.0, est.revision(), 3)
     assert fresh()
-    ctx.options = ExecOptions(strategy="full", trust_after_scan=0.0)  # off
+    ctx.options = ExecOptions(strategy="full")                         # off by default
     assert not fresh()
-    ctx.options = ExecOptions(strategy="local-scan")                  # no filter to trust
+    ctx.options = ExecOptions(strategy="local-scan", trust_after_scan=60.0)   # no filter to trust
     assert not fresh()
 
 

@@ -30,7 +30,7 @@ def _final(sim: SimulatedAFM) -> dict[str, tuple[float, float]]:
     return {b.id: b.at for b in sim.truth()}
 
 
-def _run_and_keep(k: int, strategy: str = "full", seed: int = 3):
+def _run_and_keep(k: int, strategy: str = "full", seed: int = 3, trust: float = 0.0):
     """An uninterrupted run that keeps the world and the state at its k-th checkpoint."""
     scene, layout = particle_bowtie()
     sim = SimulatedAFM(scene, seed=seed)
@@ -47,16 +47,18 @@ def _run_and_keep(k: int, strategy: str = "full", seed: int = 3):
                                  "first_plan": kept["plan"]}
                 kept["sim"] = json.dumps(sim.state_dict(), allow_nan=False)   # as the dry-run keeps it
 
-    summary = RunEngine(sim, [keep]).run(Assembly(layout, ExecOptions(strategy=strategy)).procedure(sim.config))
+    options = ExecOptions(strategy=strategy, trust_after_scan=trust)
+    summary = RunEngine(sim, [keep]).run(Assembly(layout, options).procedure(sim.config))
     return layout, sim, summary, kept
 
 
-@pytest.mark.parametrize("strategy", ["full", "kalman"])
-def test_a_run_resumed_from_a_checkpoint_ends_as_the_uninterrupted_run(strategy):
-    layout, sim, summary, kept = _run_and_keep(3, strategy)
+@pytest.mark.parametrize("strategy,trust", [("full", 0.0), ("kalman", 0.0), ("full", 60.0)])
+def test_a_run_resumed_from_a_checkpoint_ends_as_the_uninterrupted_run(strategy, trust):
+    # trust_after_scan: the last after-scan a push may start from is kept in checkpoints
+    layout, sim, summary, kept = _run_and_keep(3, strategy, trust=trust)
     assert "state" in kept, "the run ended before its third push"
     sim2 = SimulatedAFM.from_state(kept["scene"], json.loads(kept["sim"]))
-    resumed = RunEngine(sim2, []).run(Assembly(layout, ExecOptions(strategy=strategy))
+    resumed = RunEngine(sim2, []).run(Assembly(layout, ExecOptions(strategy=strategy, trust_after_scan=trust))
                                       .resume(sim2.config, kept["state"]))
     assert resumed.counts == summary.counts
     assert resumed.assignment == summary.assignment and resumed.unfilled == summary.unfilled
