@@ -90,10 +90,11 @@ class Kalman:
                        np.eye(k, PARAMETERS), np.eye(1, PARAMETERS, LAM), np.eye(1, PARAMETERS, EPS) * c])
         x0 = M @ self.scan.theta
         P0 = M @ self.scan.cov @ M.T
-        P0[:2, :2], P0[2:4, 2:4] = P0[:2, :2] + np.eye(2) * 4.0, P0[2:4, 2:4] + np.eye(2) * 1e-6
-        revision, self.filter = self.filter.revision, DriftFilter(
-            self.params, epoch=self.epoch, x0=x0, P0=0.5 * (P0 + P0.T), statics=k + 1, start=tau,
-            learn_creep=True, tau_static=k)
+        P0[:2, :2] += np.eye(2) * 4.0
+        P0[2:4, 2:4] += np.eye(2) * 1e-6
+        revision = self.filter.revision           # a new filter: one revision more, not a count afresh
+        self.filter = DriftFilter(self.params, epoch=self.epoch, x0=x0, P0=0.5 * (P0 + P0.T), statics=k + 1,
+                                  start=tau, learn_creep=True, tau_static=k)
         self.filter.revision = revision + 1
         for t_move, step in self.move_log:
             self.filter.creep.record(t_move - self.epoch, step)
@@ -121,20 +122,19 @@ class Kalman:
 
     # -- the estimate ---------------------------------------------------------------------
     def _bootstrapping(self) -> bool:
-        """Between the full scan's end and the filter's start, the drift model of the
-        scan is the estimate."""
+        """Between the full scan's end and the filter's start: the scan's drift model estimates."""
         return self.scan.ended and not self.filter.statics
 
     def offset(self, t: float) -> np.ndarray:
         if self._bootstrapping():
-            tau = t - self.epoch
-            theta = self.scan.theta
+            tau, theta = t - self.epoch, self.scan.theta
             return (self.origin + self.scan.thermal_jacobian(tau) @ theta
                     + (1.0 + theta[EPS]) * self.filter.creep.offset(tau)
                     + theta[LAM] * self.filter.creep.tau_sensitivity(tau))
         return self.origin + np.asarray(self.filter.offset(t).offset, float)
 
-    def revision(self) -> object:    # equal to an earlier one while nothing revised the estimate
+    def revision(self) -> object:
+        """Equal to an earlier token while no measurement or reset revised the estimate."""
         return [self._bootstrapping(), self.filter.revision]
 
     def offset_cov(self, t: float) -> np.ndarray:

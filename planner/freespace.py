@@ -73,7 +73,10 @@ class FreeSpace:
 
     # -- queries ----------------------------------------------------------------------
     def inside(self, geom: shapely.Geometry, radius: float) -> bool:
-        x0, y0, x1, y1 = geom.bounds
+        return self.inside_box(*geom.bounds, radius)
+
+    def inside_box(self, x0: float, y0: float, x1: float, y1: float, radius: float) -> bool:
+        """Whether a footprint whose core has bounds (x0, y0, x1, y1) lies in the area."""
         return x0 >= radius and y0 >= radius and x1 <= self.area[0] - radius and y1 <= self.area[1] - radius
 
     def _hits(self, geom, radius, tree, cores, radii, rmax, clearance) -> np.ndarray:

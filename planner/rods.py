@@ -273,23 +273,19 @@ class RodController:
         lateral = 0.24 * phi * rod.length                   # sideways per push, walking
         cell = max(lateral / 2, 1.0)
 
-        def h(p: Body) -> float:
-            d = math.dist(p.at, goal.at)
-            a = abs(math.remainder(goal.angle - p.angle, 180.0))
-            return 2.0 * max(d / lateral, a / self.options.rod_swing)
+        def h(x: float, y: float, a: float) -> float:
+            d = math.dist((x, y), goal.at)
+            return 2.0 * max(d / lateral, abs(math.remainder(goal.angle - a, 180.0)) / self.options.rod_swing)
 
-        def key(p: Body) -> tuple:
-            return (round(p.at[0] / cell), round(p.at[1] / cell), round((p.angle % 180.0) / 6.0) % 30)
+        def key(x: float, y: float, a: float) -> tuple:
+            return (round(x / cell), round(y / cell), round((a % 180.0) / 6.0) % 30)
 
         # lazy weighted A*: an edge's collision checks run when its node is popped; a
         # child is a tuple (x, y, angle) until then, made a Body only when popped
         ends = [m.poses[-1] for m in far]
-        half, r = max((rod.length - rod.diameter) / 2, 0.0), rod.radius
-        w, hgt = self.space.area
-        gx, gy, ga = goal.at[0], goal.at[1], goal.angle
-        swing = self.options.rod_swing
+        half = max((rod.length - rod.diameter) / 2, 0.0)
         counter = 0
-        heap = [(h(rod), 0, counter, rod, key(rod), None, None)]
+        heap = [(h(*rod.at, rod.angle), 0, counter, rod, key(*rod.at, rod.angle), None, None)]
         closed: set[tuple] = set()
         expansions = 0
         while heap and expansions < self.max_expansions and not self.allowance.exhausted():
@@ -315,18 +311,16 @@ class RodController:
             c, s = _unit(pose.angle)
             px, py, pa = pose.at[0], pose.at[1], pose.angle
             for m, (mx, my, ma) in zip(far, ends):
-                # as _place(pose, m.poses[-1]), key() and space.inside() of its core
-                x, y, a = px + c * mx - s * my, py + s * mx + c * my, pa + ma
-                ck = (round(x / cell), round(y / cell), round((a % 180.0) / 6.0) % 30)
+                x, y, a = px + c * mx - s * my, py + s * mx + c * my, pa + ma     # _place(pose, ...)
+                ck = key(x, y, a)
                 if ck in closed:
                     continue
-                ca, sa = _unit(a)
+                ca, sa = _unit(a)           # the core's ends (Body.core), without a shapely geometry
                 x0, x1, y0, y1 = x - half * ca, x + half * ca, y - half * sa, y + half * sa
-                if not (min(x0, x1) >= r and min(y0, y1) >= r and max(x0, x1) <= w - r and max(y0, y1) <= hgt - r):
+                if not self.space.inside_box(min(x0, x1), min(y0, y1), max(x0, x1), max(y0, y1), rod.radius):
                     continue
-                hv = 2.0 * max(math.dist((x, y), (gx, gy)) / lateral, abs(math.remainder(ga - a, 180.0)) / swing)
                 counter += 1
-                heapq.heappush(heap, (g + m.size + hv, g + m.size, counter, (x, y, a), ck, (pose, trail), m))
+                heapq.heappush(heap, (g + m.size + h(x, y, a), g + m.size, counter, (x, y, a), ck, (pose, trail), m))
         return None
 
     def _finish(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body, bool]:
