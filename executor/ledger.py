@@ -9,7 +9,8 @@ from dataclasses import dataclass, field
 from .report import Counts
 
 #: Activities the instrument's time is split into, s: ``mode_switch``, the approaches from
-#: tapping to contact before pushes (a local scan's switch back is in its own time).
+#: tapping to contact before pushes and the switches back before a scan line (what a line
+#: took beyond its learnt cost, :func:`~.scan_steps.scan_line`).
 ACTIVITIES = ("full_scan", "local_scan", "push", "travel", "mode_switch")
 #: Stages of this program's own compute, wall-clock s.
 STAGES = ("identify", "plan", "execute")

@@ -59,8 +59,8 @@ from .engine import Msg
 from .monitor import Verdict
 from .motion_steps import stream_push
 from .reaim import particle_push
-from .scan_lines import make_line, measure_line, perp
-from .scan_steps import run_pattern
+from .scan_lines import perp
+from .scan_steps import one_line
 
 #: Least leg (nm): shorter than this, the scans between legs would cost more than they save.
 MIN_LEG = 100.0
@@ -120,23 +120,11 @@ def across(ctx: RunContext, at, u, diameter: float, reach: float):
     """One scan line across a particle expected at ``at`` (layout frame), perpendicular to
     the push direction ``u``: its lateral coordinate (nm along ``perp(u)`` from ``at``)
     and that coordinate's 1σ, or None when the line finds nothing."""
-    t = yield Msg("clock")
-    v = perp(np.asarray(u, float))
-    opts = ctx.scan_opts.resolved(diameter)
-    half = diameter / 2 + reach + opts.margin
-    line = make_line(np.asarray(at, float) + ctx.offset(t), v, -half, half, opts.spacing, "SPP")
-
-    def pattern():
-        outcome = yield from measure_line(line, half, opts)
-        return outcome
-
-    outcome = yield from run_pattern(ctx, pattern())
+    half = diameter / 2 + reach + ctx.scan_opts.resolved(diameter).margin
+    outcome, _, shift = yield from one_line(ctx, at, perp(np.asarray(u, float)), half, diameter, "SPP")
     if not outcome.edges.found:
         return None
-    t_scan = ctx.scan_ref if ctx.scan_ref is not None else t
-    shift = ctx.offset(t_scan) - ctx.offset(t)       # the line was placed at t's offset
-    lateral = outcome.edges.centre - half - float(shift @ v)
-    return lateral, outcome.edges.centre_std or 1.0
+    return outcome.edges.centre - half - shift, outcome.edges.centre_std or 1.0
 
 
 def _from_contact(contact, tip_end, motion, reach: float, capture_angle: float):

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from nanoasm.bodies import Body
 from nanoasm.planner import Expect, Operation, PlanOptions
 from nanoasm.world.cantilever import Cantilever
@@ -15,6 +17,7 @@ from .context import RunContext
 from .course import Course
 from .drift_steps import emit_drift, fold, suspect_drift, take_reference
 from .engine import Msg
+from .guard_line import guard
 from .monitor import Verdict
 from .motion_steps import stream_push
 from .push_legs import push_in_legs
@@ -117,7 +120,15 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
         yield from keep_track(ctx)
         yield from take_reference(ctx, start.at, obj_id)
         yield from keep_track(ctx)
-        if not (yield from _fresh(ctx, obj_id)):
+        fresh = yield from _fresh(ctx, obj_id)
+        if fresh:                   # one line checks the after-scan still holds
+            heading = np.asarray(op.expect.at, float) - np.asarray(start.at, float)
+            why = yield from guard(ctx, obj_id, heading, plan_options.tip_radius)
+            if why is not None:
+                fresh = False
+                yield Msg("event", (f"{obj_id}: its after-scan not confirmed ({why}); scanning it",),
+                          {"level": "warn"})
+        if not fresh:
             found = yield from _locate_start(ctx, obj_id)
             if found is None:
                 _lost(ctx, obj_id)

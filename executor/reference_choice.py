@@ -95,12 +95,21 @@ class LineTiming:
     s_xx: float = 0.0
     s_xy: float = 0.0
 
+    def switched(self, samples: int, seconds: float) -> float:
+        """What of a line of ``samples`` that took ``seconds`` was a mode switch before it:
+        the time beyond its predicted cost when it took far longer (twice that and half a
+        second more), else 0."""
+        if self.n < 2 or not math.isfinite(seconds):
+            return 0.0
+        predicted = self.seconds(1, samples)
+        return seconds - predicted if seconds > 2.0 * predicted + 0.5 else 0.0
+
     def observe(self, samples: int, seconds: float) -> None:
         """One line of ``samples`` took ``seconds``; a line that took far longer than
         predicted (a mode switch before it) is left out."""
         if not (math.isfinite(seconds) and seconds >= 0.0):
             return
-        if self.n >= 2 and seconds > 2.0 * self.seconds(1, samples) + 0.5:
+        if self.switched(samples, seconds) > 0.0:
             return
         x = float(samples)
         self.n += 1

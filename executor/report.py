@@ -32,8 +32,9 @@ class Counts:
 @dataclass(frozen=True)
 class InstrumentTime:
     """Seconds the instrument spends, by activity: the parts add up to ``total``
-    (``mode_switch``: the approaches into contact before pushes; absent from reports
-    written before it, read as 0)."""
+    (``mode_switch``: the approaches into contact before pushes and the switches back to
+    tapping before the scan lines after them; absent from reports written before it, read
+    as 0; ``travel``: with the lift and park after the run's last step)."""
 
     full_scan: float = 0.0
     local_scan: float = 0.0

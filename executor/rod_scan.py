@@ -39,7 +39,7 @@ MAX_ANGLE_STD = 10.0
 ONE_END_HEIGHT = 0.1
 
 
-def _is_rod(out: LineOutcome, d: float, opts: ScanOptions) -> bool:
+def is_rod(out: LineOutcome, d: float, opts: ScanOptions) -> bool:
     """Whether a cross line's found bump is of the rod's height: at most
     ``opts.rod_height`` above ``d`` (plus three noise). A particle crossed beside the rod
     would tilt the axis through the two lines: in the bundled rods example (seed 1) an 81 nm
@@ -50,7 +50,7 @@ def _is_rod(out: LineOutcome, d: float, opts: ScanOptions) -> bool:
     return out.edges.peak <= (1 + opts.rod_height) * d + 3 * out.edges.noise
 
 
-def _rod_args(centre, angle, length, diameter, r_max, names=("centre", "angle")):
+def rod_args(centre, angle, length, diameter, r_max, names=("centre", "angle")):
     c = point(names[0], centre)
     th = number(names[1], angle)
     d = number("diameter", diameter, positive=True)
@@ -90,7 +90,7 @@ def rod_before(centre, angle: float, length: float, diameter: float, r_max: floa
     measure_angle : bool
     options : ScanOptions
     """
-    c, th, L, d, r_max = _rod_args(centre, angle, length, diameter, r_max)
+    c, th, L, d, r_max = rod_args(centre, angle, length, diameter, r_max)
     return _rod_before(c, th, L, d, r_max, bool(measure_angle), options.resolved(d))
 
 
@@ -110,7 +110,7 @@ def _rod_before(c, th, L, d, r_max, measure_angle, opts, pattern="rod_before", l
         out = yield from measure_line(_cross_line(c, a_hat, off, reach, opts, f"L{len(lines)}"),
                                       reach, opts)
         lines.append(out)
-        if out.edges.found and _is_rod(out, d, opts):
+        if out.edges.found and is_rod(out, d, opts):
             hit = off, out
             break
     if hit is None:
@@ -126,14 +126,14 @@ def _rod_before(c, th, L, d, r_max, measure_angle, opts, pattern="rod_before", l
             line = _cross_line(c, a_hat, off2, reach, opts, f"L{len(lines)}")
             out2 = yield from measure_line(line, reach, opts)
             lines.append(out2)
-            if out2.edges.found and _is_rod(out2, d, opts):
+            if out2.edges.found and is_rod(out2, d, opts):
                 cross.append(out2)
                 break
         if len(cross) < 2:
             return missed(pattern, "no second cross line found the rod to measure its angle",
                           lines)
-    w = _axis_through(cross, a_hat) if measure_angle else a_hat
-    result = yield from _finish_rod(pattern, cross, w, c, th, L, d, r_max, opts,
+    w = axis_through(cross, a_hat) if measure_angle else a_hat
+    result = yield from finish_rod(pattern, cross, w, c, th, L, d, r_max, opts,
                                     not measure_angle, lines, "")
     if result.found or not fallback:
         return result
@@ -184,7 +184,7 @@ def rod_after(start, start_angle: float, length: float, diameter: float, push_po
         Smallest α (degrees) for the seed's pattern.
     options : ScanOptions
     """
-    c0, th0, L, d, r_max = _rod_args(start, start_angle, length, diameter, r_max,
+    c0, th0, L, d, r_max = rod_args(start, start_angle, length, diameter, r_max,
                                      ("start", "start_angle"))
     t = point("push_point", push_point)
     u = unit("push_direction", push_direction)
@@ -201,7 +201,7 @@ def rod_after(start, start_angle: float, length: float, diameter: float, push_po
     return _rod_after(c0, th0, c1, th1, L, d, t, u, delta, sin_alpha, r_max, opts)
 
 
-def _crossing_t(centre, angle, L, t_pt, u, off) -> float:
+def crossing_t(centre, angle, L, t_pt, u, off) -> float:
     """Where on the line ``t_pt + off n + s u`` the rod's axis crosses (``s``), or its
     nearer end's ``s`` when the axis does not reach that line."""
     nv = perp(u)
@@ -230,7 +230,7 @@ def _rod_after(c0, th0, c1, th1, L, d, t_pt, u, delta, sin_alpha, r_max, opts):
             continue
         if len(lines) >= opts.max_lines:
             return missed(pattern, f"line budget of {opts.max_lines} used up", lines)
-        ts = [_crossing_t(c0, th0, L, t_pt, u, off), _crossing_t(c1, th1, L, t_pt, u, off)]
+        ts = [crossing_t(c0, th0, L, t_pt, u, off), crossing_t(c1, th1, L, t_pt, u, off)]
         if not scanned:
             ts += [0.0, delta]
         s_lo, s_hi = min(ts) - reach, max(ts) + reach
@@ -238,7 +238,7 @@ def _rod_after(c0, th0, c1, th1, L, d, t_pt, u, delta, sin_alpha, r_max, opts):
         out = yield from measure_line(line, ts[1] - s_lo, opts)
         lines.append(out)
         scanned.append(off)
-        if not out.edges.found or not _is_rod(out, d, opts):
+        if not out.edges.found or not is_rod(out, d, opts):
             continue
         if out.edges.peak >= AXIS_PEAK * opts.height:
             hits.append((off, out))
@@ -253,8 +253,8 @@ def _rod_after(c0, th0, c1, th1, L, d, t_pt, u, delta, sin_alpha, r_max, opts):
         return missed(pattern, f"no line found the rod within L + r_max = {limit:g} nm of the "
                       f"push point ({len(lines)} lines)", lines)
     cross = [h for _, h in sorted(hits, key=lambda h: h[0])]
-    w = _axis_through(cross, axis(th1))
-    result = None if w is None else (yield from _finish_rod(pattern, cross, w, c1, th1, L, d,
+    w = axis_through(cross, axis(th1))
+    result = None if w is None else (yield from finish_rod(pattern, cross, w, c1, th1, L, d,
                                                             r_max, opts, False, lines, "'",
                                                             touches))
     if result is not None and result.found:
@@ -278,7 +278,7 @@ def _fallback(pattern, lines, th_ref, L, d, opts):
     return missed(pattern, f"the lines did not fix the rod's outline ({result.reason})", lines)
 
 
-def _axis_through(cross: list[LineOutcome], ref_axis: np.ndarray) -> np.ndarray | None:
+def axis_through(cross: list[LineOutcome], ref_axis: np.ndarray) -> np.ndarray | None:
     """Unit vector from the first to the second crossing midpoint, turned to ``ref_axis``."""
     w = cross[1].midpoint() - cross[0].midpoint()
     norm = math.hypot(*w)
@@ -357,7 +357,7 @@ def _result(pattern, fit, th_ref, d, fix_angle, lines, length, length_std, note=
                            length_std, tuple(lines))
 
 
-def _finish_rod(pattern, cross, w, ref, th_ref, L, d, r_max, opts, fix_angle, lines, prime,
+def finish_rod(pattern, cross, w, ref, th_ref, L, d, r_max, opts, fix_angle, lines, prime,
                 touches=()):
     """Scan the axis line V through the cross lines' midpoints and fit the outline to
     their crossings, V's and those of lines that only grazed an end (``touches``)."""

@@ -22,8 +22,9 @@ from .association import Candidate, associate, sighting
 from .progress_docs import PROGRESS, ProgressDoc
 from .apex_check import CROWDED, ROUND, image_check
 from .local_scan import particle_after, particle_before, rod_after, rod_before
-from .scan_lines import LocalScanResult
+from .scan_lines import LocalScanResult, make_line, measure_line
 from .lost_search import find_lost_particle
+from .rod_predicted import rod_after_predicted
 from .motion_steps import approach
 
 #: Covariance (nm²) of a located centre when the pattern gives none.
@@ -35,7 +36,7 @@ def run_pattern(ctx: RunContext, pattern):
     scan_line messages; returns its result. The travels to the lines count as travel."""
     led = ctx.ledger
     t0 = yield Msg("clock")
-    travel0 = led.times["travel"]
+    travel0, switch0 = led.times["travel"], led.times["mode_switch"]
     led.counts["local_scans"] += 1
     ctx.scan_ref = None
     ctx.scan_comp = np.zeros((2, 2))
@@ -54,10 +55,30 @@ def run_pattern(ctx: RunContext, pattern):
     if hasattr(result, "line_creep") and ctx.scan_creep:
         result = replace(result, line_creep=np.array(ctx.scan_creep, float).reshape(-1, 2))
     t1 = yield Msg("clock")
-    scanning = t1 - t0 - (led.times["travel"] - travel0)
+    scanning = t1 - t0 - (led.times["travel"] - travel0) - (led.times["mode_switch"] - switch0)
     led.times["local_scan"] += scanning
     yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"{lines} line(s), {scanning:.1f} s")))
     return result
+
+
+def one_line(ctx: RunContext, centre, direction, half: float, diameter: float, role: str):
+    """One scan line, a local scan of its own, through ``centre`` (layout nm) along
+    ``direction``, ``half`` nm to each side, for an object of ``diameter``. Returns its
+    outcome, the resolved scan options, and how far (nm, along ``direction``) the drift
+    estimate moved the sample between placing the line and scanning it (subtract it from
+    a position read on the line)."""
+    t = yield Msg("clock")
+    opts = ctx.scan_opts.resolved(diameter)
+    u = np.asarray(direction, float)
+    line = make_line(np.asarray(centre, float) + ctx.offset(t), u, -half, half, opts.spacing, role)
+
+    def pattern():
+        outcome = yield from measure_line(line, half, opts)
+        return outcome
+
+    outcome = yield from run_pattern(ctx, pattern())
+    t_scan = ctx.scan_ref if ctx.scan_ref is not None else t
+    return outcome, opts, float((ctx.offset(t_scan) - ctx.offset(t)) @ u)
 
 
 def scan_line(ctx: RunContext, a: np.ndarray, b: np.ndarray, n: int):
@@ -94,6 +115,8 @@ def scan_line(ctx: RunContext, a: np.ndarray, b: np.ndarray, n: int):
     t0 = yield Msg("clock")
     profile = np.asarray((yield Msg("scan_line", (tuple(ends[0]), tuple(ends[1]), count))), float)
     t = yield Msg("clock")
+    switched = ctx.timing.switched(count, t - t0)
+    ctx.ledger.times["mode_switch"] += switched          # the switch back to tapping before it
     ctx.timing.observe(count, t - t0)
     ctx.drift.moved_to(ends[0], t0)
     ctx.drift.moved_to(ends[1], t)
@@ -311,7 +334,8 @@ def scan_after(ctx: RunContext, op: Operation, start: Body):
     delta = float(np.linalg.norm(b - a))
     u = (b - a) / delta if delta > 0 else np.array([1.0, 0.0])
     if o.kind == "rod":
-        pattern = rod_after(np.asarray(start.at) + off, start.angle, o.length, o.diameter,
+        scan = rod_after_predicted if ctx.options.after_scan == "predicted" else rod_after
+        pattern = scan(np.asarray(start.at) + off, start.angle, o.length, o.diameter,
                             b - u * delta / 2 + off, u, delta, r_max,
                             predicted=np.asarray(op.expect.at) + off,
                             predicted_angle=op.expect.angle, options=ctx.scan_opts)

@@ -17,6 +17,7 @@ from pathlib import Path
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
 from nanoasm.errors import InputError
+from nanoasm.executor.ledger import ACTIVITIES
 from nanoasm.executor.report import InstrumentTime, Report, WallTime
 from nanoasm.executor.reviewed_plan import ReviewedPlan, load_reviewed
 from nanoasm.executor.runlog import RunLog
@@ -94,7 +95,9 @@ def report_of(summary: RunSummary, layout: Layout, instrument_total: float, wall
         objects = (tuple(plain(o) for o in summary.env.objects),
                    tuple(plain(o) for oid, o in belief.objects.items() if oid not in belief.lost))
         objects = (own_frame(summary, objects[0]), own_frame(summary, objects[1]))
-    t, w = summary.times, summary.wall
+    t, w = dict(summary.times), summary.wall
+    # the engine lifts and parks the tip after the procedure's last step: lifted travel
+    t["travel"] += max(instrument_total - sum(t.get(a, 0.0) for a in ACTIVITIES), 0.0)
     return Report(
         scene=scene_name, layout=layout_name, seed=seed, targets=layout.targets,
         initial_objects=objects[0], final_objects=objects[1],
