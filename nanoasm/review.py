@@ -173,6 +173,8 @@ def review(path: str | os.PathLike) -> Review:
         starts.append(res.epoch)
     if starts and rev.end_time is not None:
         rev.total_time = rev.end_time - min(starts)
+        if res is not None:         # the lift and park after the last step, as the report counts them
+            rev.times["travel"] += max(rev.total_time - sum(rev.times.values()), 0.0)
 
     # slots: against the simulated truth when the harness logged it, else the last belief;
     # named by the run's ids either way (a true body by the identified object it is)

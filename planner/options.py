@@ -52,6 +52,12 @@ class PlanOptions:
         well away from the bifurcation at L/2 (seed eq. 4.10). 0.2 by default (measured
         with the 45° swing; issue 14's audit found the tip slipping off rods beyond
         l ≈ 0.32 L at the instrument's preload).
+    rod_direct : str
+        When a rod's lattice search heads straight for its goal before an SE(2) path is
+        sought: ``clear`` (the default) only when the rod's straight sweep from where it is
+        to its goal is clear; ``always``. A search whose straight way is blocked spends its
+        whole budget before it gives up (issue 14: 22 of 30 such searches failed on the
+        bowtie, 54 s of 60).
     align : str
         How a layout with alignment marks is registered to the scan before planning
         (:mod:`nanoasm.planner.alignment`): ``rigid`` (rotation and translation),
@@ -71,6 +77,8 @@ class PlanOptions:
     rod_swing: float = param(45.0, "deg", "largest rotation of one rod push", positive=True, hi=60.0)
     rod_push_point: float = param(0.2, "-", "push point of rod pushes, fraction of the length from the "
                                   "pushed end", lo=0.0, hi=0.3)
+    rod_direct: str = param("clear", "", "a rod's direct search first: only when its straight way is clear, "
+                            "or always", choices=("clear", "always"))
     align: str = param("rigid", "", "registration of a layout with marks: rigid, similarity (scale too) or none",
                        choices=ALIGNS)
 

@@ -16,7 +16,8 @@ directions turn it about its centre by 2φ. A controller chooses, push by push:
 3. turn to the slot's angle; then alignment pushes repeat 1-3 on the residual.
 
 Every push's swept area is checked against free space; when the direct approach is
-blocked, an SE(2) path from OMPL (validity over the rod's capsule) provides waypoints.
+blocked (its straight sweep is not clear, or the search heading straight for the goal
+finds no way), an SE(2) path from OMPL (validity over the rod's capsule) provides waypoints.
 """
 
 from __future__ import annotations
@@ -431,7 +432,7 @@ class RodController:
         # a slot with no room to line the rod up in (between electrodes) is entered by a
         # sideways walk, what a zigzag does best, from where there is room (an SE(2) path
         # to there first); the other way round when the direct way fails
-        # (the direct search, cheap, always first)
+        # (the direct search first where the rod's straight way is clear: PlanOptions.rod_direct)
         enclosed = not roomy(self.space, goal, self.options, None, tuple(self.space.bodies))
         # (enclosed: by fixed things, electrodes; an enclosed slot: the walk with the tip's clearance before an SE(2) path, which
         # would have to turn the rod where it has no room to; a slot with room, the direct
@@ -459,6 +460,10 @@ class RodController:
             legs = [goal]
             what = f"zigzag of {rod.id!r}"
             self.allowance = Budget.of(self.options, EXPANSIONS_PER_UNIT, what)
+            # the direct search where its straight way is clear (or always): blocked, it
+            # spends its whole budget before it gives up
+            direct = direct and (self.options.rod_direct == "always"
+                                 or swept_free(self.space, rod, goal, rod.id, clearance, self.exempt))
             first = self._leg(rod, goal, near_pos, near_ang) if direct else None
             if first is None:
                 self.allowance = Budget.of(self.options, EXPANSIONS_PER_UNIT, what, share=LEG_SHARE)
