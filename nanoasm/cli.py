@@ -695,7 +695,7 @@ def _print_summary(layout, outcome) -> None:
     table.add_row("local scans / replans", f"{rep.counts.local_scans} / {rep.counts.replans}")
     table.add_row("instrument time", f"{t.total / 60:.1f} min (full scan {t.full_scan / 60:.1f}, local scans "
                                      f"{t.local_scan / 60:.1f}, pushing {t.push / 60:.1f}, travel {t.travel / 60:.1f}, "
-                                     f"approaches {t.mode_switch / 60:.1f})")
+                                     f"mode switches {t.mode_switch / 60:.1f})")
     w = rep.wall_time
     table.add_row("wall time", f"{w.total:.1f} s (identify {w.identify:.1f}, plan {w.plan:.1f}, execute {w.execute:.1f})")
     reasons = {u.target: u.reason for u in rep.unfilled}
