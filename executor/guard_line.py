@@ -82,10 +82,7 @@ def guard(ctx: RunContext, obj_id: str, heading, tip_radius: float):
         slack = ROD_CHORD * o.length + 3.0 * tip_radius + 5.0
         if abs(chord - o.length) > slack:
             return f"the line along it crossed {chord:.0f} nm of a {o.length:.0f} nm rod"
-        moved = e.centre - half - shift
-        if abs(moved) > reach:
-            return f"its centre {moved:+.0f} nm along its axis"
-        measured, var_along = w, e.centre_std ** 2
+        along = "along its axis"
     else:
         u = np.asarray(heading, float)
         u = u / max(float(np.linalg.norm(u)), 1e-12)
@@ -98,22 +95,21 @@ def guard(ctx: RunContext, obj_id: str, heading, tip_radius: float):
         crest = apex(o.radius, tip_radius, PARTICLE_OFF * o.radius) - 3.0 * e.noise
         if e.peak < crest:
             return f"the line across the push read {e.peak:.0f} nm, off its top ({crest:.0f} nm)"
-        moved = e.centre - half - shift
-        if abs(moved) > reach:
-            return f"its centre {moved:+.0f} nm across the push"
-        measured, var_along = w, e.centre_std ** 2
+        along = "across the push"
+    moved = e.centre - half - shift         # the line's coordinate w, measured less believed
+    if abs(moved) > reach:
+        return f"its centre {moved:+.0f} nm {along}"
     # the measured coordinate replaces the believed one; the other keeps its variance
-    cov = np.asarray(seen.cov, float)
-    other = perp(measured)
-    var_other = float(other @ cov @ other)
+    other = perp(w)
+    var_other = float(other @ np.asarray(seen.cov, float) @ other)
     t_seen = ctx.scan_ref if ctx.scan_ref is not None else (yield Msg("clock"))
-    var_measured = var_along + float(measured @ ctx.drift.observation_cov(t_seen, np.zeros((2, 2))) @ measured)
-    new_cov = var_measured * np.outer(measured, measured) + var_other * np.outer(other, other)
-    at = centre + moved * measured
+    var_measured = e.centre_std ** 2 + float(w @ ctx.drift.observation_cov(t_seen, np.zeros((2, 2))) @ w)
+    new_cov = var_measured * np.outer(w, w) + var_other * np.outer(other, other)
+    at = centre + moved * w
     ctx.belief.observe(obj_id, at, t_seen, new_cov, angle=o.angle if o.kind == "rod" else None)
     ctx.refs.raw.discard(obj_id)
     if o.kind == "rod":             # the axial coordinate only: across and the angle as they were
-        loose = var_measured * np.outer(measured, measured) + (o.diameter ** 2) * np.outer(other, other)
+        loose = var_measured * np.outer(w, w) + (o.diameter ** 2) * np.outer(other, other)
         ctx.pivots.seen(ctx.belief[obj_id], loose, angle_std=GUARD_ANGLE_STD)
     yield Msg("event", (f"{obj_id}: its after-scan confirmed by one line ({moved:+.1f} nm)",))
     return None
