@@ -35,10 +35,16 @@ next) may cover part of it, but never faster than travel, so the time is at leas
 minimal scan time plus ``max(0, D - minimal scan length) / max_speed`` (a longer scan
 costs more than the travel it saves, as the scan speed is below ``max_speed``).
 
+Mode switches, apart (``switch_s``, not in ``total_s``): a push is made in contact mode
+and its scans in tapping mode, so an executor that scans after every push, as the
+closed loop must, switches into contact and back once per push, ``2 mode_switch`` each
+(the instrument's ``TimingParams.mode_switch``, 2 s on the simulator). That is the
+instrument's cost, not the physics': ``total_s`` leaves it out, ``with_switches_s``
+adds it. On rods seed 1 the switches alone were twice the bound (bench/RESULTS.md).
+
 Not included, so the bound stays a bound for any executor and any instrument: the full
 scan and identification before the first push, the travel to the first push, the
-settling time before each scan line (``scan_line_overhead``) and the tapping/contact
-mode switches (``mode_switch``) of the simulator's timing model, lowering and lifting
+settling time before each scan line (``scan_line_overhead``), lowering and lifting
 the tip, acceleration limits (0.2 ms per push at the defaults), reference scans of
 untouched objects for the drift filter, searches for lost objects, failed pushes,
 corrections and replanned pushes. Distances are taken in the layout frame: drift moves
@@ -78,13 +84,20 @@ class Bound:
     push_s: float
     scan_s: float
     travel_s: float
+    switch_s: float = 0.0
 
     @property
     def total_s(self) -> float:
+        """Push, scan lines and travel: the bound for any instrument."""
         return self.push_s + self.scan_s + self.travel_s
 
+    @property
+    def with_switches_s(self) -> float:
+        """:attr:`total_s` and the instrument's mode switches, two per push."""
+        return self.total_s + self.switch_s
+
     def to_dict(self) -> dict:
-        return {**asdict(self), "total_s": self.total_s}
+        return {**asdict(self), "total_s": self.total_s, "with_switches_s": self.with_switches_s}
 
 
 def path_length(points) -> float:
@@ -135,7 +148,8 @@ def physical_bound(plan: Plan, options: ExecOptions | None = None, config: Instr
     objects : Environment, iterable of Body or mapping id -> Body, optional
         Sizes of the pushed objects (else inferred from the plan, see above).
     timing : TimingParams, optional
-        Its ``scan_line_sample`` sets the scan speed (default ``TimingParams()``).
+        Its ``scan_line_sample`` sets the scan speed and its ``mode_switch`` the switches'
+        time (default ``TimingParams()``).
     scan : ScanOptions
         The executor's local-scan options (sample spacing).
     tip_radius : float
@@ -160,4 +174,4 @@ def physical_bound(plan: Plan, options: ExecOptions | None = None, config: Instr
             gap = math.dist(prev_end, op.tip_path[0]) - prev_scan - before
             travel_s += max(gap, 0.0) / config.max_speed
         prev_end, prev_scan, prev_object = op.tip_path[-1], length / 2, op.object
-    return Bound(push_s, scan_s, travel_s)
+    return Bound(push_s, scan_s, travel_s, 2 * timing.mode_switch * len(plan.operations))

@@ -818,9 +818,9 @@ def _print_sweep(rows, groups) -> None:
 
     table = RichTable(title=f"sweep: {len(rows)} dry-run(s), medians over seeds")
     cols = ("family", "drift", "strategy", "knob", "runs", "fill_rate", "rms_error_nm",
-            "per_filled_slot_s", "bound_s", "ratio_after_scan")
+            "per_filled_slot_s", "bound_s", "ratio_after_scan", "ratio_after_scan_switch")
     heads = ("family", "drift nm/s", "strategy", "knob", "runs", "fill", "RMS nm (filled)",
-             "s per filled slot", "bound s", "(T - scan) / bound")
+             "s per filled slot", "bound s", "(T - scan) / bound", "/ (bound + mode switches)")
     for h in heads:
         table.add_column(h)
     for g in groups:

@@ -46,7 +46,8 @@ KNOBS = EXEC_KNOBS + PLAN_KNOBS
 
 COLUMNS = ("case", "family", "seed", "strategy", "drift", "knob", "slots", "filled", "fill_rate",
            "rms_error_nm", "rms_assigned_nm", "instrument_s", "full_scan_s", "per_filled_slot_s",
-           "bound_s", "ratio", "ratio_after_scan", "pushes", "failed_pushes", "local_scans", "replans",
+           "bound_s", "ratio", "ratio_after_scan", "bound_switch_s", "ratio_after_scan_switch", "pushes",
+           "failed_pushes", "local_scans", "replans",
            "wall_s", "error")
 #: Most cases in one batch. Tasks of milliseconds want batches of ~50 (LIBRARIES.md),
 #: but a dry-run takes 0.1-20 s, so a few per batch make dispatch negligible while
@@ -199,8 +200,9 @@ def run_case(case: Case) -> dict:
         options, plan_options = case.options()
         out = dry_run(scene, layout, seed=case.seed, options=options, plan_options=plan_options)
         rep, t = out.report, out.report.instrument_time
-        bound = physical_bound(out.summary.plan, options, scene.params.scanner, objects=out.summary.env,
-                               timing=scene.params.timing, tip_radius=plan_options.tip_radius).total_s
+        b = physical_bound(out.summary.plan, options, scene.params.scanner, objects=out.summary.env,
+                           timing=scene.params.timing, tip_radius=plan_options.tip_radius)
+        bound, with_switches = b.total_s, b.with_switches_s
         n, filled = len(layout.targets), len(out.filled)
         errors = list(out.errors.values())
         rms_assigned = math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else None
@@ -211,6 +213,8 @@ def run_case(case: Case) -> dict:
             per_filled_slot_s=round(t.total / filled, 3) if filled else None,
             bound_s=round(bound, 3), ratio=_rounded(t.total / bound) if bound > 0 else None,
             ratio_after_scan=_rounded((t.total - t.full_scan) / bound) if bound > 0 else None,
+            bound_switch_s=round(with_switches, 3),
+            ratio_after_scan_switch=_rounded((t.total - t.full_scan) / with_switches) if with_switches > 0 else None,
             pushes=rep.counts.pushes, failed_pushes=rep.counts.failed_pushes,
             local_scans=rep.counts.local_scans, replans=rep.counts.replans)
     except Exception as exc:           # noqa: BLE001 - recorded in the row, the sweep goes on
@@ -355,7 +359,7 @@ def _median(values) -> float | None:
 
 
 MEDIANS = ("fill_rate", "rms_error_nm", "rms_assigned_nm", "instrument_s", "per_filled_slot_s", "bound_s",
-           "ratio", "ratio_after_scan", "wall_s")
+           "ratio", "ratio_after_scan", "ratio_after_scan_switch", "wall_s")
 
 
 def medians(rows: Sequence[dict], by: Sequence[str] = ("family", "drift", "strategy", "knob")) -> list[dict]:

@@ -34,7 +34,18 @@ def test_one_straight_push_gives_its_closed_form():
     assert b.scan_s == pytest.approx(4 * 120.0 / 1000.0)
     assert b.travel_s == 0.0
     assert b.total_s == pytest.approx(5.48)
-    assert b.to_dict() == {"push_s": b.push_s, "scan_s": b.scan_s, "travel_s": 0.0, "total_s": b.total_s}
+    assert b.switch_s == pytest.approx(2 * 2.0)        # into contact and back, 2 s each
+    assert b.with_switches_s == pytest.approx(9.48)
+    assert b.to_dict() == {"push_s": b.push_s, "scan_s": b.scan_s, "travel_s": 0.0, "switch_s": 4.0,
+                           "total_s": b.total_s, "with_switches_s": b.with_switches_s}
+
+
+def test_mode_switches_count_two_per_push_at_the_instruments_time():
+    a = push(1, "p", (0.0, 0.0), (1000.0, 0.0), (1060.0, 0.0))
+    b = push(2, "p", (1000.0, 0.0), (1500.0, 0.0), (1560.0, 0.0))
+    plan = Plan("x", operations=(a, b))
+    assert physical_bound(plan, timing=TimingParams(mode_switch=0.5)).switch_s == pytest.approx(2.0)
+    assert physical_bound(plan, timing=TimingParams(mode_switch=0.0)).switch_s == 0.0
 
 
 def test_without_objects_a_particle_radius_comes_from_the_contact_geometry():
@@ -109,6 +120,8 @@ def test_the_bound_stays_below_a_real_dry_run():
     spent = out.report.instrument_time
     assert len(out.summary.plan.operations) == 2
     assert 0 < b.total_s <= spent.total - spent.full_scan
+    assert b.with_switches_s <= spent.total - spent.full_scan
+    assert b.switch_s <= spent.mode_switch
     assert b.scan_s <= spent.local_scan
     # the pushes were aimed again from where the scans found the objects: their lengths
     # differ from the plan's by the objects' scatter, a few nm

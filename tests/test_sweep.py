@@ -38,7 +38,9 @@ def test_a_row_holds_the_case_its_figures_and_the_bound(serial_rows):
         assert r["bound_s"] > 0
         if r["strategy"] != "open-loop":     # the bound counts local scans, which open-loop skips
             # no run beats the physical bound, even without its full scan
-            assert r["instrument_s"] - r["full_scan_s"] >= r["bound_s"]
+            assert r["instrument_s"] - r["full_scan_s"] >= r["bound_switch_s"] > r["bound_s"]
+            assert r["ratio_after_scan_switch"] == pytest.approx(
+                (r["instrument_s"] - r["full_scan_s"]) / r["bound_switch_s"], rel=1e-3)
         assert r["ratio"] == pytest.approx(r["instrument_s"] / r["bound_s"], rel=1e-3)
         if r["filled"]:
             assert r["per_filled_slot_s"] == pytest.approx(r["instrument_s"] / r["filled"], abs=1e-3)
