@@ -48,20 +48,20 @@ CHI2_3SIGMA = 11.829
 JUMP_AFTER = 150.0
 
 
-def one_run(args: tuple[str, int, float]) -> dict:
+def one_run(args: tuple) -> dict:
     """Dry-run one family and seed (``jump`` nm of drift jump :data:`JUMP_AFTER` s after the
-    full scan, 0: none)."""
+    full scan, 0: none; optionally ``ExecOptions.trust_after_scan``, s)."""
     from nanoasm.dryrun import dry_run
     from nanoasm.executor.strategy import ExecOptions
     from nanoasm.world.families import family_case
 
-    name, seed, jump = args
+    name, seed, jump, trust = (*args, 0.0)[:4]
     scene, layout = family_case(name, seed)
     if jump:
         change = replace(scene.params.drift_change, jump=jump, jump_at=scene.area[0] / 10.0 + JUMP_AFTER)
         scene = replace(scene, params=replace(scene.params, drift_change=change))
     w0 = time.perf_counter()
-    out = dry_run(scene, layout, options=ExecOptions(strategy="full"))
+    out = dry_run(scene, layout, options=ExecOptions(strategy="full", trust_after_scan=trust))
     wall = time.perf_counter() - w0
     pts = out.drift
     after = pts[1:] if len(pts) > 1 else pts          # the first update is the bootstrap's
@@ -194,10 +194,12 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     ap = sweep_args(__doc__, FAMILIES, "RESULTS_drift_refs.md")
     ap.add_argument("--jump-seeds", default="1-10", help="seeds of the drift-jump case ('' for none)")
+    ap.add_argument("--trust-after-scan", type=float, default=0.0,
+                    help="ExecOptions.trust_after_scan of every run, s (default 0, the executor's)")
     a = ap.parse_args(argv)
     seeds = parse_seeds(a.seeds)
-    cases = [(f, s, 0.0) for f in a.families.split(",") for s in seeds]
-    jumps = [("allpushed", s, 300.0) for s in parse_seeds(a.jump_seeds)] if a.jump_seeds else []
+    cases = [(f, s, 0.0, a.trust_after_scan) for f in a.families.split(",") if f for s in seeds]
+    jumps = [("allpushed", s, 300.0, a.trust_after_scan) for s in parse_seeds(a.jump_seeds)] if a.jump_seeds else []
     todo = cases + jumps
     sweep_to_file(todo, one_run, a.workers, Path(a.out),
                   lambda done, secs: report([done[k] for k in range(len(cases)) if k in done],

@@ -27,6 +27,7 @@ model's error. A good estimate buys short lines and few search steps.
 from __future__ import annotations
 
 from collections.abc import Generator
+from dataclasses import replace
 
 import numpy as np
 
@@ -41,7 +42,8 @@ from .scan_lines import (AXIS_PEAK, DEFAULT_OPTIONS, LineOutcome, LocalScanResul
 Pattern = Generator[ScanLine, np.ndarray, LocalScanResult]
 
 __all__ = ["LineOutcome", "LocalScanResult", "Pattern", "ScanLine", "ScanOptions",
-           "centre_from_hit", "line_length", "particle_after", "particle_before", "rod_after",
+           "centre_from_hit", "line_length", "particle_after", "particle_after_predicted", "particle_before",
+           "rod_after",
            "rod_before", "run_pattern"]
 
 
@@ -103,14 +105,45 @@ def particle_after(start, diameter: float, push_direction, push_length: float, r
         Largest expected error of that expected position (drift and push model, nm).
     options : ScanOptions
     """
-    o = point("start", start)
+    o, d, u, delta, r_max, opts, reach = _after_args(start, diameter, push_direction, push_length, r_max, options)
+    return _particle("particle_after", o, u, -reach, delta + reach, delta, d, r_max, opts, "'")
+
+
+def particle_after_predicted(start, diameter: float, push_direction, push_length: float, r_max: float, *,
+                             options: ScanOptions = DEFAULT_OPTIONS) -> Pattern:
+    """Find a particle's centre after a push, first where the push put it (issue 16:
+    scans chosen by what is uncertain), then, if it is not there, by the seed's pattern
+    (:func:`particle_after`, the same arguments).
+
+    The seed's line L'0 runs from behind the start O_a to beyond O_a + Δ u, ``Δ + 2
+    reach`` long, because it must find a particle the tip slipped off as surely as one
+    pushed home. A particle pushed as predicted needs only the reach about O_a + Δ u: this
+    pattern first scans that line, ``2 (R + r_max + margin)`` along the push (``P'0``),
+    then V' across its chord's midpoint. Where P'0 finds nothing, or V' misses, the
+    seed's pattern runs after it, whole: a particle that stopped short is found as before,
+    at the cost of one short line.
+    """
+    o, d, u, delta, r_max, opts, reach = _after_args(start, diameter, push_direction, push_length, r_max, options)
+    lines: list[LineOutcome] = []
+    if delta > 0:                     # else the seed's line is this line
+        out = yield from measure_line(make_line(o, u, delta - reach, delta + reach, opts.spacing, "P'0"),
+                                      reach, opts)
+        lines.append(out)
+        if out.edges.found:
+            result = yield from centre_from_hit("particle_after", out, -reach, reach, reach, d, opts, lines, "'")
+            if result.found:
+                return result
+    result = yield from particle_after(o, d, u, delta, r_max, options=options)
+    return replace(result, lines=(*lines, *result.lines))
+
+
+def _after_args(start, diameter, push_direction, push_length, r_max, options: ScanOptions):
+    """The after-scan's arguments checked: (O_a, d, u, Δ, r_max, resolved options, reach)."""
     d = number("diameter", diameter, positive=True)
-    u = unit("push_direction", push_direction)
-    delta = number("push_length", push_length, nonnegative=True)
     r_max = number("r_max", r_max, nonnegative=True)
     opts = options.resolved(d)
-    reach = d / 2 + r_max + opts.margin
-    return _particle("particle_after", o, u, -reach, delta + reach, delta, d, r_max, opts, "'")
+    return (point("start", start), d, unit("push_direction", push_direction),
+            number("push_length", push_length, nonnegative=True), r_max, opts, d / 2 + r_max + opts.margin)
 
 
 def _particle(pattern, origin, u, s_lo, s_hi, s_exp, d, r_max, opts, prime):

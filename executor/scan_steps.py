@@ -21,7 +21,7 @@ from .engine import Msg
 from .association import Candidate, associate, sighting
 from .progress_docs import PROGRESS, ProgressDoc
 from .apex_check import CROWDED, ROUND, image_check
-from .local_scan import particle_after, particle_before, rod_after, rod_before
+from .local_scan import particle_after, particle_after_predicted, particle_before, rod_after, rod_before
 from .scan_lines import LocalScanResult, make_line, measure_line
 from .lost_search import find_lost_particle
 from .rod_predicted import rod_after_predicted
@@ -334,7 +334,7 @@ def scan_after(ctx: RunContext, op: Operation, start: Body):
     delta = float(np.linalg.norm(b - a))
     u = (b - a) / delta if delta > 0 else np.array([1.0, 0.0])
     if o.kind == "rod":
-        scan = rod_after_predicted if ctx.options.after_scan == "predicted" else rod_after
+        scan = rod_after if ctx.options.after_scan == "seed" else rod_after_predicted
         pattern = scan(np.asarray(start.at) + off, start.angle, o.length, o.diameter,
                             b - u * delta / 2 + off, u, delta, r_max,
                             predicted=np.asarray(op.expect.at) + off,
@@ -343,8 +343,8 @@ def scan_after(ctx: RunContext, op: Operation, start: Body):
         move = np.asarray(op.expect.at) - np.asarray(start.at)
         length = float(np.linalg.norm(move))
         direction = move / length if length > 0 else u
-        pattern = particle_after(np.asarray(start.at) + off, o.diameter, direction, length, r_max,
-                                 options=ctx.scan_opts)
+        scan = particle_after_predicted if ctx.options.after_scan == "predicted" else particle_after
+        pattern = scan(np.asarray(start.at) + off, o.diameter, direction, length, r_max, options=ctx.scan_opts)
     res = yield from run_pattern(ctx, pattern)
     if not res.found:
         return None

@@ -1,6 +1,6 @@
 """Scans chosen by what is uncertain (issue 16): one line that confirms an after-scan
-before the next push of its object, a rod's after-scan placed where the pivot model puts
-the rod, and the mode switches the report now accounts for as such."""
+before the next push of its object, a rod's and a particle's after-scan placed where the
+push model puts them, and the mode switches the report now accounts for as such."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from nanoasm.executor.context import RunContext
 from nanoasm.executor.engine import RunEngine
 from nanoasm.executor.estimators import NoDrift
 from nanoasm.executor.guard_line import apex, guard
-from nanoasm.executor.local_scan import rod_after, run_pattern
+from nanoasm.executor.local_scan import particle_after, particle_after_predicted, rod_after, run_pattern
 from nanoasm.executor.reference_choice import LineTiming
 from nanoasm.executor.references import References
 from nanoasm.executor.rod_predicted import rod_after_predicted
@@ -127,6 +127,39 @@ def test_a_rod_that_did_not_move_is_found_by_the_seeds_pattern_after_the_short_l
     assert err(result, c0) < 2.0 and angle_err(result.angle, th0) < 1.0
     roles = [o.line.role for o in result.lines]
     assert roles[0] == "P0" and ("L'0" in roles or "L0" in roles)
+
+
+@pytest.mark.parametrize("length", [150.0, 800.0, 3000.0])
+def test_a_particle_where_the_push_put_it_is_found_by_one_short_line_and_v(length):
+    """Within r_max of O_a + Δ u, P'0 about it and V' find the particle as well as the
+    seed's pattern, whose L'0 spans the whole push."""
+    rng = np.random.default_rng(int(length))
+    for _ in range(8):
+        d, r_max = rng.uniform(30, 100), rng.uniform(10, 40)
+        u = np.array([math.cos(a := rng.uniform(0, 2 * math.pi)), math.sin(a)])
+        start = np.array([2000.0, 2000.0]) - u * length / 2
+        truth = start + u * length + rng.uniform(-1, 1, 2) * r_max / 2
+        bodies = [Body("p", "particle", tuple(truth), d)]
+        args = (start, d, u, length, r_max)
+        short = run_pattern(particle_after_predicted(*args), scanner(bodies, rng))
+        seed = run_pattern(particle_after(*args), scanner(bodies, rng))
+        assert short.found and seed.found, (short.reason, seed.reason)
+        assert err(short, truth) < 1.5 and err(seed, truth) < 1.5
+        assert [o.line.role for o in short.lines][:2] == ["P'0", "V'"]
+        assert short.total_length < seed.total_length - length + 1e-6
+
+
+def test_a_particle_the_tip_slipped_off_is_found_by_the_seeds_pattern_after_the_short_line():
+    """The particle stayed at O_a (the tip slipped): P'0 about O_a + Δ u finds nothing and
+    the seed's pattern, run after it, finds the particle where it started."""
+    rng = np.random.default_rng(3)
+    start, u = np.array([1500.0, 2000.0]), np.array([1.0, 0.0])
+    result = run_pattern(particle_after_predicted(start, 90.0, u, 1000.0, 20.0),
+                         scanner([Body("p", "particle", tuple(start), 90.0)], rng))
+    assert result.found, result.reason
+    assert err(result, start) < 1.5
+    roles = [o.line.role for o in result.lines]
+    assert roles[0] == "P'0" and roles[1] == "L'0"
 
 
 def test_a_lines_time_beyond_its_learnt_cost_is_a_mode_switch():
