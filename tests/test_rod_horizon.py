@@ -85,3 +85,26 @@ def test_the_controller_finishes_by_the_horizon_and_keeps_clear():
     for p in pushes:
         assert p.pose.geometry().distance(electrode) > p.pose.radius
         assert shapely.Point(p.tip_path[0]).distance(electrode) > OPTS.tip_radius
+
+
+@pytest.mark.parametrize("mode", ["always", "clear"])
+def test_the_direct_search_comes_first_always_or_only_where_the_straight_way_is_clear(mode, monkeypatch):
+    """A wall between the rod and its slot blocks the straight sweep: with ``always`` the
+    first lattice search heads for the slot itself, with ``clear`` for the first waypoint
+    of an SE(2) path round the wall. In free space both head for the slot."""
+    opts = PlanOptions(rod_direct=mode)
+    start = Body("r", "rod", (1000.0, 2000.0), D, 90.0, L)
+    goal = Body("g", "rod", (3000.0, 2000.0), D, 90.0, L)
+    wall = shapely.box(1950.0, 1400.0, 2050.0, 2600.0)
+    real, aims = RodController._search, []
+
+    def search(self, rod, aim, near_pos, near_ang):
+        aims.append(aim.at)
+        return real(self, rod, aim, near_pos, near_ang)
+    monkeypatch.setattr(RodController, "_search", search)
+    for fixed, blocked in (([], False), ([(wall, 0.0)], True)):
+        aims.clear()
+        free = FreeSpace((4000.0, 4000.0), fixed, {"r": start}, clearance=opts.clearance)
+        RodController(free, opts, 6.0, 0.9).pushes(start, goal)
+        assert aims, "no lattice search ran"
+        assert (aims[0] == goal.at) == (mode == "always" or not blocked)
