@@ -48,14 +48,14 @@ CHI2_3SIGMA = 11.829
 JUMP_AFTER = 150.0
 
 
-def one_run(args: tuple) -> dict:
+def one_run(args: tuple[str, int, float, float]) -> dict:
     """Dry-run one family and seed (``jump`` nm of drift jump :data:`JUMP_AFTER` s after the
-    full scan, 0: none; optionally ``ExecOptions.trust_after_scan``, s)."""
+    full scan, 0: none) with ``ExecOptions.trust_after_scan`` at ``trust`` s."""
     from nanoasm.dryrun import dry_run
     from nanoasm.executor.strategy import ExecOptions
     from nanoasm.world.families import family_case
 
-    name, seed, jump, trust = (*args, 0.0)[:4]
+    name, seed, jump, trust = args
     scene, layout = family_case(name, seed)
     if jump:
         change = replace(scene.params.drift_change, jump=jump, jump_at=scene.area[0] / 10.0 + JUMP_AFTER)

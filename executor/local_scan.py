@@ -133,7 +133,7 @@ def particle_after_predicted(start, diameter: float, push_direction, push_length
             result = yield from centre_from_hit("particle_after", out, -reach, reach, reach, d, opts, lines, "'")
             if result.found:
                 return result
-    result = yield from particle_after(o, d, u, delta, r_max, options=options)
+    result = yield from _particle("particle_after", o, u, -reach, delta + reach, delta, d, r_max, opts, "'")
     return replace(result, lines=(*lines, *result.lines))
 
 
