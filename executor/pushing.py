@@ -171,6 +171,10 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
         ledger.fail(obj_id, verdict.status)
         yield Msg("event", (f"push of {obj_id} {verdict.status} (peak force {verdict.peak_force:.0f} nN)",),
                   {"level": "warn"})
+        if scans:
+            # the tip lost its object: perhaps the drift jumped under it (rare otherwise: 1
+            # of 40 particle-family runs had a failed push), so a reference first
+            yield from suspect_drift(ctx, obj_id, op.expect.at)
     if scans:
         after = yield from scan_after(ctx, op, start)
         if after is None:

@@ -196,10 +196,9 @@ class ExecOptions:
     replan_after: float = param(60.0, "nm", "deviation from the planned course that replans (full)",
                                 positive=True)
     lost_radius: float = param(1500.0, "nm", "half-size of the search for a lost object", positive=True)
-    after_scan: str = param("rods", "-", "the scan after a push: short lines where the push model puts the "
+    after_scan: str = param("predicted", "-", "the scan after a push: short lines where the push model puts the "
                             "object first, the seed's pattern if it is not there (predicted), so for rods only "
-                            "(rods, the default until the scenario tests are re-timed for predicted), or the "
-                            "seed's pattern only (seed)", choices=("predicted", "rods", "seed"))
+                            "(rods), or the seed's pattern only (seed)", choices=("predicted", "rods", "seed"))
     trust_after_scan: float = param(0.0, "s", "age of an after-scan a push may start from without a scan "
                                     "before (0: always scan first)", nonnegative=True)
     push_speed: float | None = param(200.0, "nm/s", "tip speed while pushing (None: the scanner's limit)",

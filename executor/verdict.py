@@ -112,24 +112,32 @@ def _angle_error(a: float, b: float) -> float:
     return min(d, 180.0 - d)
 
 
-def check_slots(ctx: RunContext, layout: Layout, assignment) -> Any:
+def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous=None) -> Any:
     """Scan every slot of ``layout`` (plan stub); returns its :class:`SlotVerdict`s in
-    the layout's order. ``assignment``: the run's final (target, object) pairs.
+    the layout's order. ``assignment``: the run's final (target, object) pairs. With
+    ``only`` (slot ids), only those slots are scanned and the others keep their verdicts
+    of ``previous`` (the last check's, in the layout's order).
 
     A slot whose assigned object is not found within tolerance may be a slot missed, or
     the drift estimate gone wrong (a jump during the last pushes or these scans): a
     reference is measured at once (:func:`~.drift_steps.suspect_drift`), and if the
-    estimate had to be relocalised every slot is scanned again, once."""
+    estimate had to be relocalised every slot scanned is scanned again, once."""
     assigned = {a.target: a.object for a in assignment}
+    if only is not None and (previous is None or len(previous) != len(layout.targets)):
+        raise ValueError("check_slots: 'only' needs the previous verdict of every slot")
     for again in (False, True):
         out = []
-        for target in layout.targets:
+        for k, target in enumerate(layout.targets):
+            if only is not None and target.id not in only:
+                out.append(previous[k])
+                continue
             obj = assigned.get(target.id)
             verdict = yield from _check_slot(ctx, target, obj, layout.tolerance)
             out.append(verdict)
             if not again and verdict.state == "missed" and (yield from suspect_drift(ctx, obj, target.at)):
                 yield Msg("event", ("the drift estimate was relocalised during the check scans: "
-                                    "every slot is scanned again",), {"level": "warn"})
+                                    f"every slot{'' if only is None else ' of these'} is scanned again",),
+                          {"level": "warn"})
                 break
         else:
             break

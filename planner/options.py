@@ -54,10 +54,14 @@ class PlanOptions:
         l ≈ 0.32 L at the instrument's preload).
     rod_direct : str
         When a rod's lattice search heads straight for its goal before an SE(2) path is
-        sought: ``clear`` (the default) only when the rod's straight sweep from where it is
-        to its goal is clear; ``always``. A search whose straight way is blocked spends its
-        whole budget before it gives up (issue 14: 22 of 30 such searches failed on the
-        bowtie, 54 s of 60).
+        sought: ``always`` (the default), or ``clear``: only when the rod's straight sweep
+        from where it is to its goal is clear. A search whose straight way is blocked
+        spends its whole budget before it gives up (issue 14: 22 of 30 such searches
+        failed on the bowtie, 54 s of 60), so ``clear`` plans the bowtie's first plan in
+        2.4-2.8 s instead of 6.1-6.4; but where a direct search would still have got
+        through, the SE(2) path's detour costs pushes: over 10 seeds, rods 24.5 -> 33
+        pushes a run, rodgap 101 -> 133 and 3.4 -> 9.6 min of wall time, mixed one slot
+        fewer (bench/RESULTS_rods.md).
     align : str
         How a layout with alignment marks is registered to the scan before planning
         (:mod:`nanoasm.planner.alignment`): ``rigid`` (rotation and translation),
@@ -77,8 +81,8 @@ class PlanOptions:
     rod_swing: float = param(45.0, "deg", "largest rotation of one rod push", positive=True, hi=60.0)
     rod_push_point: float = param(0.2, "-", "push point of rod pushes, fraction of the length from the "
                                   "pushed end", lo=0.0, hi=0.3)
-    rod_direct: str = param("clear", "", "a rod's direct search first: only when its straight way is clear, "
-                            "or always", choices=("clear", "always"))
+    rod_direct: str = param("always", "", "a rod's direct search first: always, or only when its straight "
+                            "way is clear (faster first plans, more pushes)", choices=("always", "clear"))
     align: str = param("rigid", "", "registration of a layout with marks: rigid, similarity (scale too) or none",
                        choices=ALIGNS)
 

@@ -164,6 +164,33 @@ def test_a_rod_of_any_size_its_slot_takes_is_found_filling_it(length, d):
     assert v.state == "filled" and abs(v.error - math.hypot(4, 2)) < 3.0, events
 
 
+def test_check_scans_of_some_slots_keep_the_others_verdicts():
+    """A repair round that plans no push scans the slots not filled again (``only``): the
+    slot scanned gets what its scan finds, the other keeps its last verdict, even one its
+    scan would now contradict, and no line is spent on it."""
+    from nanoasm.bodies import Body
+    from nanoasm.cad.layout import Layout
+    from nanoasm.executor.slot_verdict import SlotVerdict
+    from nanoasm.executor.verdict import check_slots
+    from nanoasm.planner.plan import Assignment
+
+    layout = Layout((4000.0, 4000.0), (Body("s1", "particle", (1000.0, 2000.0), 90.0),
+                                       Body("s2", "particle", (2500.0, 2000.0), 90.0)))
+    truth = [particle((1003, 2002), d=90.0, id="a"), particle((2502, 1998), d=90.0, id="b")]
+    believed = {"a": (1000.0, 2000.0, 90.0), "b": (2500.0, 2000.0, 90.0)}
+    pairs = (Assignment("s1", "a"), Assignment("s2", "b"))
+    last = (SlotVerdict("s1", "a", "missed", None), SlotVerdict("s2", "b", "missed", None))
+    (v1, v2), ctx, _ = _run(truth, believed, lambda ctx: check_slots(ctx, layout, pairs, only={"s1"},
+                                                                   previous=last))
+    assert v1.state == "filled" and v1.error < 8.0
+    assert v2 is last[1]
+    scans = ctx.ledger.counts["local_scans"]
+    (w1, w2), ctx2, _ = _run(truth, believed, lambda ctx: check_slots(ctx, layout, pairs))
+    assert w1.state == w2.state == "filled" and ctx2.ledger.counts["local_scans"] > scans
+    with pytest.raises(ValueError, match="previous verdict"):
+        _run(truth, believed, lambda ctx: check_slots(ctx, layout, pairs, only={"s1"}))
+
+
 # -- the verdict: a neighbour pressed against the slot's particle -------------------------
 
 def _check_wedged(at, turn, r_max=40.0):

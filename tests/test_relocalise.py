@@ -60,7 +60,7 @@ def test_a_drift_jump_mid_run_is_caught_by_relocalisation_and_every_slot_still_f
                   subscribers=[events])
     assert any(t.startswith("relocalised by window") for t in events.texts), events.texts
     assert set(out.filled) == {t.id for t in layout.targets} and not out.disagreements
-    late = [p for p in out.drift if p.t > 1000.0]
+    late = [p for p in out.drift if p.t > 950.0]             # the run ends before 1000 s
     assert late and max(p.error for p in late) < 15.0
 
 
@@ -72,33 +72,46 @@ def _allpushed_jump(seed: int, at: float):
 
 
 def test_an_object_pushed_while_the_drift_jumped_is_looked_for_where_the_correction_puts_it():
-    """allpushed seed 5, the jump at 750 s, during the pushes: o7, pushed while it struck,
+    """allpushed seed 2, the jump at 750 s, during the pushes: o6, pushed while it struck,
     was seen after the estimate was last confirmed and before the first reference that
-    failed (o7 itself, then the edge c2), so the relocalisation (-64, -291 nm) looks for it
-    where the correction puts it and, not finding it there, where the old estimate put it,
-    and finds it. (Seed 1 at 900 s before contact legs made the runs shorter; before this
-    check o8 was taken for o4 by a lost search there, lost, and its slot left unfilled.)"""
-    out, layout, events = _allpushed_jump(5, 750.0)
+    failed, so the relocalisation (+290, -87 nm) looks for it where the correction puts it,
+    and finds it there. (Seed 5 at 750 s before the particles' short after-scan made the
+    runs shorter; seed 1 at 900 s before contact legs; before this check o8 was taken for
+    o4 by a lost search, lost, and its slot left unfilled.)"""
+    out, layout, events = _allpushed_jump(2, 750.0)
     assert any(t.startswith("relocalised by window") for t in events.texts), events.texts
     assert any("seen while the drift jumped" in t for t in events.texts), events.texts
     assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
 
 
 def test_a_drift_jump_during_the_check_scans_does_not_falsify_the_verdict():
-    """allpushed seed 6, the jump at 822 s while the run scans its slots for the verdict
-    (818, 822 and 825 s tried since tracked legs and a preload per object, 828.1 s too late; 826-833 s since the drift
-    estimate learns the creep time constant; 844-852 s since contact legs and creep that
-    follows the legs; 912-920 s since the tip
-    force follows the contact normal; 918-925 s before that, 900 s before dry-runs
-    compensated with a calibrated, drawn lever)
-    (before: 1 of 9 filled by its own account, 8 in truth): the first slot missed sets
-    off a reference, that fails too, the estimate is relocalised and every slot scanned
-    again."""
-    out, layout, events = _allpushed_jump(6, 822.0)
+    """allpushed seed 6, the jump at 806 s while the run scans its slots for the verdict
+    (822 s before the particles' short after-scan made the runs shorter; 818, 822 and 825 s
+    tried since tracked legs and a preload per object, 828.1 s too late; 826-833 s since
+    the drift estimate learns the creep time constant; 844-852 s since contact legs and
+    creep that follows the legs; 912-920 s since the tip force follows the contact normal;
+    918-925 s before that, 900 s before dry-runs compensated with a calibrated, drawn
+    lever) (before: 1 of 9 filled by its own account, 8 in truth): the first slot missed
+    sets off a reference, that fails too, the estimate is relocalised and every slot
+    scanned again."""
+    out, layout, events = _allpushed_jump(6, 806.0)
     assert any("scanned again" in t for t in events.texts), events.texts
     # a slot whose assigned object the check scan did not find says why
     assert any(t.startswith("slot ") and "the check scan did not find" in t for t in events.texts), events.texts
     assert not out.disagreements and len(out.truly_filled) >= len(layout.targets) - 1
+
+
+def test_a_slot_the_check_scans_missed_is_scanned_again_when_the_repair_round_plans_nothing():
+    """allpushed seed 4, the jump at 815 s during the check scans: relocalised, every slot
+    scanned again, and one slot (s9) still reported missed while its particle was in it;
+    the repair round's survey of it found the belief held and planned no push. Before the
+    slots not filled were scanned again then, the run reported 8 of 9 filled while 9 were
+    (s9 the disagreement); now its verdict and the truth agree on 9. (Why the second check
+    scan of s9 missed was not traced.)"""
+    out, layout, events = _allpushed_jump(4, 815.0)
+    assert any(t.startswith("repair round 1") for t in events.texts), events.texts
+    assert any(t.startswith("check scans of the 1 slot(s) not filled, again") for t in events.texts), events.texts
+    assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
 
 
 def test_the_relocalisation_mask_is_each_body_widened_and_costs_the_boxes_only():

@@ -178,24 +178,27 @@ def _allpushed_jump(seed: int, at: float):
 
 
 def test_a_push_gone_astray_in_a_drift_jump_is_found_by_the_survey_and_pushed_home():
-    """allpushed seed 11, the jump at 700 s: the check scan does not find o7 in its slot,
-    the survey sees it 51 nm from where it was believed, and the pushes planned from there
-    fill every slot. (Seed 3 at 750 s before tracked legs and a preload per object; seed
-    19 at 820 s before the drift estimate learnt the creep time constant; seed 4 at
-    900 s before contact legs: o8's last push left 115 nm off, a neighbour taken for it by
-    the check scans, seen 319 nm from where it was believed.)"""
-    out, layout, events = _allpushed_jump(11, 700.0)
+    """allpushed seed 4, the jump at 812 s: the check scans find nothing in slot s7, the
+    survey sees o6 221 nm from where it was believed, and the push planned from there fills
+    every slot. (Seed 11 at 700 s before the particles' short after-scan made the runs
+    shorter; seed 3 at 750 s before tracked legs and a preload per object; seed 19 at 820
+    s before the drift estimate learnt the creep time constant; seed 4 at 900 s before
+    contact legs: o8's last push left 115 nm off, a neighbour taken for it by the check
+    scans, seen 319 nm from where it was believed.)"""
+    out, layout, events = _allpushed_jump(4, 812.0)
     assert any(t.startswith("repair round 1") for t in events.texts), events.texts
     assert any(t.startswith("survey 1") and "nm from where it was believed" in t for t in events.texts)
     assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
 
 
 def test_an_object_lost_in_a_drift_jump_is_looked_for_where_its_pushes_went():
-    """allpushed seed 4, the jump at 750 s: the survey of an empty slot finds its object
-    is not where it was believed, the windows along its pushes find it again, and the
-    slot is filled. (Seed 1 before the drift estimate learnt the creep time constant; seed
-    5 at 900 s before contact legs: o4's neighbour o5 taken for it, found 816 nm away.)"""
-    out, layout, events = _allpushed_jump(4, 750.0)
+    """allpushed seed 1, the jump at 700 s: the check scans miss o9 in s9, the survey of
+    that slot finds o9 is not where it was believed, the windows along its pushes find it
+    again (416 nm away), and the slot is filled. (Seed 4 at 750 s before the particles'
+    short after-scan made the runs shorter; seed 1 before the drift estimate learnt the
+    creep time constant; seed 5 at 900 s before contact legs: o4's neighbour o5 taken for
+    it, found 816 nm away.)"""
+    out, layout, events = _allpushed_jump(1, 700.0)
     assert any("is not there" in t for t in events.texts), events.texts
     assert any("found again" in t for t in events.texts), events.texts
     assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
@@ -203,11 +206,12 @@ def test_an_object_lost_in_a_drift_jump_is_looked_for_where_its_pushes_went():
 
 
 def test_no_repair_round_when_rounds_are_off():
-    """allpushed seed 2, the jump at 750 s: with repair rounds every slot is filled, without
-    them 8 of 9, and the run says so. (Seed 7 at 900 s before the drift estimate learnt the
-    creep time constant.)"""
-    scene, layout = family_case("allpushed", 2)
-    change = replace(scene.params.drift_change, jump=300.0, jump_at=750.0)
+    """allpushed seed 1, the jump at 700 s (the run of the test above): with repair rounds
+    every slot is filled, without them 8 of 9, and the run says so. (Seed 2 at 750 s before
+    the particles' short after-scan made the runs shorter; seed 7 at 900 s before the drift
+    estimate learnt the creep time constant.)"""
+    scene, layout = family_case("allpushed", 1)
+    change = replace(scene.params.drift_change, jump=300.0, jump_at=700.0)
     scene = replace(scene, params=replace(scene.params, drift_change=change))
     events = Events()
     out = dry_run(scene, layout, options=ExecOptions(strategy="full", repair_rounds=0), subscribers=[events])
