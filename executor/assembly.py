@@ -208,34 +208,14 @@ class Assembly:
             counts = {s: sum(v.state == s for v in self.slots) for s in STATES}
             yield Msg("event", (f"check scans of the {len(self.slots)} slot(s): " +
                                 ", ".join(f"{n} {s}" for s, n in counts.items()),))
-            repairs = self.ctx.ledger.repairs
             ops, i, done = (yield from repair_round(self, done)), 0, 0
             if not ops:
-                if self.ctx.ledger.repairs > repairs:
-                    yield from self._check_again()
                 break
         t_now = yield Msg("clock")                     # the belief as the check scans left it
         yield Msg("checkpoint", (checkpoint(self, [], done, corrections, t_now),))
         result = summary(self)
         yield Msg("emit", ("result", result.to_doc()))
         return result
-
-    def _check_again(self) -> Procedure:
-        """After a repair round that planned no push: the check scans of the slots not
-        filled, again. Its survey found what it looked for where the plan wants it, or
-        moved the drift estimate, so the last check scans may have looked in the wrong
-        place (allpushed seed 4, a 300 nm jump at 815 s: a slot filled in truth was
-        reported missed, its survey found the belief held and planned nothing); the
-        filled slots keep their verdicts."""
-        todo = {t.id for t, v in zip(self.layout.targets, self.slots) if v.state != "filled"}
-        if not todo:
-            return
-        self.slots = yield from check_slots(self.ctx, self.layout, summary(self).assignment,
-                                            only=todo, previous=self.slots)
-        again = [v for t, v in zip(self.layout.targets, self.slots) if t.id in todo]
-        counts = {s: sum(v.state == s for v in again) for s in STATES}
-        yield Msg("event", (f"check scans of the {len(todo)} slot(s) not filled, again: " +
-                            ", ".join(f"{n} {s}" for s, n in counts.items()),))
 
     def _pushes(self, ops: list[Operation], i: int, done: int, corrections: dict[str, int]):
         """The pushes of ``ops`` from ``i`` on, with scans, corrections and replanning;

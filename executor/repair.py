@@ -45,6 +45,8 @@ from .engine import Msg
 from .progress_docs import PROGRESS, ProgressDoc
 from .relocalise import keep_track, taken
 from .scan_steps import locate, scan_window
+from .summary import summary
+from .verdict import check_again
 
 #: Substrate surveyed beyond a slot's footprint, nm: a push gone astray leaves its object
 #: and the neighbours it shoved within a few hundred nm.
@@ -172,7 +174,8 @@ def repair_round(asm, done: int):
     of its plan run) if slots are not filled, rounds remain and the run pushed something
     (else the belief is what the full scan showed, which a survey at its pixel size would
     only repeat): survey them, plan again from what the survey saw; returns the new plan's
-    operations (none: the run is over)."""
+    operations (none: the run is over; a replan with no push checks the slots not filled
+    again, :func:`~.verdict.check_again`)."""
     ctx = asm.ctx
     bad = _particle_slots_not_filled(asm.layout, asm.slots)
     if not bad or not asm.strategy.replans or ctx.ledger.repairs >= asm.options.repair_rounds \
@@ -184,7 +187,10 @@ def repair_round(asm, done: int):
     yield Msg("event", (f"repair round {ctx.ledger.repairs}: surveying the {len(bad)} particle slot(s) "
                         f"not filled",), {"level": "warn"})
     yield from survey(ctx, bad, asm.slots, asm.plan_options.tip_radius)
-    return (yield from asm.replan(done, f"repair round {ctx.ledger.repairs}"))
+    ops = yield from asm.replan(done, f"repair round {ctx.ledger.repairs}")
+    if not ops:                  # nothing to push: perhaps the last check scans looked amiss
+        asm.slots = yield from check_again(ctx, asm.layout, summary(asm).assignment, asm.slots)
+    return ops
 
 
 def _particle_slots_not_filled(layout, verdicts) -> list:
