@@ -14,6 +14,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from nanoasm.drift import gate_threshold
+
 from . import creep_terms
 from .context import RunContext
 from .engine import Msg
@@ -31,6 +33,11 @@ BOOTSTRAP_OBJECTS = 4
 #: the run's end 0.10 from the truth with four, 0.06 with eight, medians); on a 4 µm area
 #: it is 3.5 nm, on 5 µm 4.3.
 TAU_SPREAD = 4.0
+#: Bootstrap references left out at most, each because the others contradict it beyond
+#: :data:`BOOTSTRAP_GATE` (and each replaced by the next pick).
+BOOTSTRAP_OUTLIERS = 3
+#: Gate probability of that test (χ² of a reference against the others' model).
+BOOTSTRAP_GATE = 0.9999
 #: Variance (nm²) of a component a bootstrap reference measures: the located centre's
 #: and the full scan's (2 nm each), and what the model leaves (the random walk, creep).
 BOOTSTRAP_VAR = 16.0
@@ -228,26 +235,46 @@ def bootstrap(ctx: RunContext):
         return
     drift.full_scan_done()
     count = BOOTSTRAP_OBJECTS * (2 if _tau_spread(ctx) > TAU_SPREAD else 1)
-    picks = _bootstrap_picks(ctx, count)
+    picks = iter(_bootstrap_picks(ctx, count))
     t_start = yield Msg("clock")
-    seen_objects, used, t_last = [], 0, t_start
-    for kind, rid, seen_t in picks:
-        if used >= (count if drift.velocity_known else 3 * BOOTSTRAP_OBJECTS):
+    seen_objects, state = {}, {"used": 0, "t_last": t_start}
+
+    def scan_more():
+        """Scan the picks in order until enough references measured the model."""
+        for kind, rid, seen_t in picks:
+            scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t)
+            if scanned is not None:
+                rows, t, seen = scanned
+                lam1 = drift.filter.creep.tau_sensitivity(t - drift.epoch)   # every move's, per unit λ
+                for n, z, tau1, tau0, creep1, var in rows:
+                    drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1,
+                                       key=(kind, rid))
+                if seen is not None:
+                    seen_objects[rid] = seen
+                state["used"] += 1
+                state["t_last"] = t
+            if state["used"] >= (count if drift.velocity_known else 3 * BOOTSTRAP_OBJECTS):
+                return
+
+    yield from scan_more()
+    # a reference the others contradict (a neighbour in a cluster taken for it: scale300
+    # seed 1, 108 nm off in x, pulled the velocity 10 % off and every row's position up
+    # to 24 nm) is left out, and another scanned in its place
+    for _ in range(BOOTSTRAP_OUTLIERS):
+        worst = drift.scan.worst()
+        if worst is None or worst[1] <= gate_threshold(worst[2], BOOTSTRAP_GATE):
             break
-        scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t)
-        if scanned is None:
-            continue
-        rows, t, seen = scanned
-        lam1 = drift.filter.creep.tau_sensitivity(t - drift.epoch)   # every move's, per unit λ
-        for n, z, tau1, tau0, creep1, var in rows:
-            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1)
-        if seen is not None:
-            seen_objects.append(seen)
-        used += 1
-        t_last = t
+        (kind, rid), chi2, _ = worst
+        drift.scan.remove((kind, rid))
+        seen_objects.pop(rid, None)
+        state["used"] -= 1
+        yield Msg("event", (f"bootstrap: {rid} disagrees with the other references (χ² {chi2:.0f}): "
+                            f"left out",), {"level": "warn"})
+        yield from scan_more()
+    used, t_last = state["used"], state["t_last"]
     t_end = yield Msg("clock")
     ctx.ledger.purposes["bootstrap"] += t_end - t_start
-    for oid, body, cov, t in seen_objects:       # by the scan's drift model, then the filter starts
+    for oid, body, cov, t in seen_objects.values():   # by the scan's drift model, then the filter starts
         ctx.observe(oid, ctx.to_layout(body, t).at, t, cov)
     drift.restart(t_last)
     if not drift.velocity_known:

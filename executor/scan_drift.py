@@ -61,6 +61,7 @@ class ScanDrift:
         self.ended = False                   # the full scan has ended
         self.info = np.zeros((PARAMETERS, PARAMETERS))   # what the references measured
         self.eta = np.zeros(PARAMETERS)
+        self.rows: dict = {}                 # each reference's components (h, z, var), by key
         self._prior = self.cov.copy()
 
     @staticmethod
@@ -121,24 +122,62 @@ class ScanDrift:
         self.moves = np.array([[t, s[0], s[1]] for t, s in moves], float).reshape(-1, 3)
         self.ended = True
 
-    def measure(self, n, z: float, tau1: float, tau0: float, var: float, creep1=None, lam1=None) -> None:
+    def measure(self, n, z: float, tau1: float, tau0: float, var: float, creep1=None, lam1=None,
+                key=None) -> None:
         """A reference seen at ``τ0`` in the full scan and at ``τ1`` again: ``z`` (nm, the
         nominal creep taken out) is the component along unit ``n`` of ``D(τ1) − D(τ0)``,
         with variance ``var`` (nm²). ``creep1``: the nominal creep (nm) at ``τ1`` of every
         move made so far, ``lam1`` its derivative by ``ln τ_c``
         (:func:`~nanoasm.drift.creep.creep_tau_sensitivity`);
-        by default the scan's moves alone."""
+        by default the scan's moves alone. ``key``: the reference it belongs to, kept so
+        that a reference the others contradict can be taken out (:meth:`worst`,
+        :meth:`remove`)."""
         J1 = self.jacobian(tau1)
         if creep1 is not None:
             J1[:, EPS] = np.asarray(creep1, float)
         if lam1 is not None:
             J1[:, LAM] = np.asarray(lam1, float)
         h = np.asarray(n, float) @ (J1 - self.jacobian(tau0))
-        self.info += np.outer(h, h) / var
-        self.eta += h * z / var
+        if key is not None:
+            self.rows.setdefault(key, []).append((h, float(z), float(var)))
+        self._add(h, float(z), float(var), 1.0)
+
+    def _add(self, h: np.ndarray, z: float, var: float, sign: float) -> None:
+        self.info += sign * np.outer(h, h) / var
+        self.eta += sign * h * z / var
         self.cov = np.linalg.inv(np.linalg.inv(self._prior) + self.info)
         self.cov = 0.5 * (self.cov + self.cov.T)
         self.theta = self.cov @ self.eta
+
+    def disagreement(self, key) -> float:
+        """χ² of reference ``key``'s components against ``θ`` measured by every other
+        reference (and the prior): large when it is not what the others say, a neighbour
+        taken for it, say; 0 for an unknown key."""
+        rows = self.rows.get(key)
+        if not rows:
+            return 0.0
+        H = np.array([h for h, _, _ in rows])
+        z = np.array([v for _, v, _ in rows])
+        R = np.diag([var for _, _, var in rows])
+        info = self.info - H.T @ np.linalg.solve(R, H)
+        eta = self.eta - H.T @ np.linalg.solve(R, z)
+        cov = np.linalg.inv(np.linalg.inv(self._prior) + info)
+        r = z - H @ (cov @ eta)
+        S = H @ cov @ H.T + R
+        return float(r @ np.linalg.solve(0.5 * (S + S.T), r))
+
+    def worst(self):
+        """``(key, χ², components)`` of the reference the others contradict most, None
+        without references kept by key."""
+        if not self.rows:
+            return None
+        key = max(self.rows, key=lambda k: (self.disagreement(k), str(k)))
+        return key, self.disagreement(key), len(self.rows[key])
+
+    def remove(self, key) -> None:
+        """Take reference ``key``'s components out of the model."""
+        for h, z, var in self.rows.pop(key, ()):
+            self._add(h, z, var, -1.0)
 
     def state_dict(self) -> dict:
         return {"epoch": self.epoch, "theta": self.theta.tolist(), "cov": self.cov.tolist(),

@@ -19,10 +19,13 @@ from nanoasm.executor.scan_lines import LineOutcome, LocalScanResult, ScanLine
 AMP, TAU = 0.01, 0.1
 
 
-def _bootstrap(truth_eps: float, creep_std: float, seed: int = 3, truth_tau: float = TAU, tau_std: float = 0.0):
+def _bootstrap(truth_eps: float, creep_std: float, seed: int = 3, truth_tau: float = TAU, tau_std: float = 0.0,
+               wrong: dict | None = None):
     """References seen during a 1000 s scan (no moves then) scanned again after long
     travels whose creep is at ``1 + truth_eps`` times the nominal amplitude (and time
-    constant ``truth_tau``); returns the model and the true velocity."""
+    constant ``truth_tau``); returns the model and the true velocity. ``wrong``: reference
+    index -> a position error (nm), as if a neighbour had been taken for it; each
+    reference is kept under its index (``measure``'s key)."""
     rng = np.random.default_rng(seed)
     v = np.array([0.3, -0.2])
     sd = ScanDrift(0.0, 0.5, AMP, TAU, creep_std=creep_std, tau_std=tau_std)
@@ -37,9 +40,11 @@ def _bootstrap(truth_eps: float, creep_std: float, seed: int = 3, truth_tau: flo
         true_creep = creep_offset(t, times, steps, AMP * (1.0 + truth_eps), truth_tau)
         tau0 = 100.0 + 110.0 * k
         drift = v * (t - tau0) + true_creep                         # D(t) - D(τ0)
+        drift = drift + np.asarray((wrong or {}).get(k, (0.0, 0.0)), float)
         for e in np.eye(2):
             z = float(e @ (drift - nominal)) + rng.normal(0, 1.0)   # the nominal creep taken out
-            sd.measure(e, z, t, tau0, 1.0, creep1=nominal, lam1=creep_tau_sensitivity(t, times, steps, AMP, TAU))
+            sd.measure(e, z, t, tau0, 1.0, creep1=nominal, lam1=creep_tau_sensitivity(t, times, steps, AMP, TAU),
+                       key=k)
     return sd, v
 
 
@@ -65,6 +70,35 @@ def test_the_scan_model_learns_the_creep_time_constant_and_so_the_velocity():
     pinned, _ = _bootstrap(0.1, creep_std=0.003, truth_tau=0.7 * TAU, tau_std=0.0)
     assert abs(sd.theta[LAM] - truth) < 3 * math.sqrt(sd.cov[LAM, LAM]) and abs(sd.theta[LAM] - truth) < 0.1
     assert np.abs(pinned.theta[:2] - v).max() > 3 * np.abs(sd.theta[:2] - v).max()
+
+
+@pytest.mark.parametrize("k, err", [(1, (-108.0, 14.0)), (5, (0.0, 30.0)), (7, (25.0, 0.0))])
+def test_a_reference_the_others_contradict_is_found_and_taken_out(k, err):
+    """A neighbour in a cluster taken for a bootstrap reference (scale300 seed 1: 108 nm
+    off in x) pulls the velocity off and every row of the full scan with it. Against the
+    model the other references make, its χ² stands out (the gate of the bootstrap: 2
+    components at probability 0.9999, 18.4); taken out, the model is the one of the
+    references without it, the same as if it had never been measured."""
+    from nanoasm.drift import gate_threshold
+
+    clean, v = _bootstrap(0.3, creep_std=0.002)
+    key, chi2, m = clean.worst()
+    assert m == 2 and chi2 < gate_threshold(2, 0.9999)
+    sd, _ = _bootstrap(0.3, creep_std=0.002, wrong={k: err})
+    assert np.abs(sd.theta[:2] - v).max() > 2 * np.abs(clean.theta[:2] - v).max()
+    key, chi2, _ = sd.worst()
+    assert key == k and chi2 > gate_threshold(2, 0.9999)
+    assert all(sd.disagreement(j) < chi2 for j in range(8) if j != k)
+    sd.remove(k)
+    assert k not in sd.rows and sd.disagreement(k) == 0.0
+    np.testing.assert_allclose(sd.theta[:2], clean.theta[:2], atol=0.01)
+    assert np.abs(sd.theta[:2] - v).max() < 0.01
+    fresh = ScanDrift(0.0, 0.5, AMP, TAU, creep_std=0.002)     # never measured: the same model
+    fresh.scan_ended([])
+    for j, rows in sd.rows.items():
+        for h, z, var in rows:
+            fresh._add(h, z, var, 1.0)
+    np.testing.assert_allclose(sd.theta, fresh.theta, rtol=1e-6, atol=1e-9)
 
 
 def test_a_checkpoint_from_before_the_creep_error_resumes_with_it_zero_and_known():
