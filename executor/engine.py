@@ -67,6 +67,8 @@ class RunState(enum.Enum):
 class Terminated(BaseException):
     """Raised in the main thread when the process receives SIGTERM."""
 
+    stop_reason = "terminated (SIGTERM)"
+
 
 Subscriber = Callable[[str, Document], None]
 
@@ -154,7 +156,7 @@ class RunEngine:
         except (KeyboardInterrupt, Terminated) as exc:
             signals.stopping = True             # first: a further signal is held from here on
             self.state = RunState.ABORTED
-            self.reason = "interrupted (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else "terminated (SIGTERM)"
+            self.reason = "interrupted (Ctrl-C)" if isinstance(exc, KeyboardInterrupt) else exc.stop_reason
             raise
         except BaseException as exc:
             signals.stopping = True

@@ -172,7 +172,7 @@ class RunLog:
         self.server = None
         self._closed = False
         self._await_truth = truth
-        self._hold = False
+        self._hold = self.stopped = False       # stopped: the run's /stop recorded
         self._t = 0.0                 # latest instrument time seen (s)
         self._pushes = 0
         self._plan_attached = False
@@ -289,6 +289,7 @@ class RunLog:
     def _on_stop(self, doc: dict, t: float | None) -> None:
         self._on_event({"level": "info" if doc.get("state") == "done" else "error",
                         "text": f"run {doc.get('state')}: {doc.get('reason')}"}, t)
+        self.stopped = True
         self._hold = self._await_truth and doc.get("state") == "done"
 
     def _on_full_scan(self, doc: dict, t: float | None) -> None:

@@ -858,6 +858,8 @@ class _Terminated(BaseException):
     """SIGTERM outside a run; within one the run engine raises its own ``Terminated``
     (after stopping the run and closing its log)."""
 
+    stop_reason = "terminated (SIGTERM)"    # what a run log opened before its run says (harness.run_logs)
+
 
 def _raise_terminated(signum, frame) -> NoReturn:
     raise _Terminated()

@@ -17,6 +17,8 @@ from pathlib import Path
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
 from nanoasm.errors import InputError
+from nanoasm.executor.documents import STOP, StopDoc
+from nanoasm.executor.engine import RunState
 from nanoasm.executor.ledger import ACTIVITIES
 from nanoasm.executor.report import InstrumentTime, Report, WallTime
 from nanoasm.executor.reviewed_plan import ReviewedPlan, load_reviewed
@@ -55,10 +57,23 @@ def run_logs(to: LogTo, layout: Layout, metadata: dict, carry=None, **options) -
         if carry is not None:
             log.carry(carry)
         yield [log]
+    except BaseException as exc:
+        reason = _signal_stop(exc)
+        if reason is not None and not log.stopped:      # stopped before its run began (calibration, planning)
+            log(STOP, StopDoc(RunState.ABORTED.value, reason))
+        raise
     finally:
         log.close()
         if to.path is not None:
             print(f"{to.path}: written", file=sys.stderr)
+
+
+def _signal_stop(exc: BaseException) -> str | None:
+    """The reason a stop by Ctrl-C or SIGTERM gives (the engine's words), else None."""
+    if isinstance(exc, KeyboardInterrupt):
+        return "interrupted (Ctrl-C)"
+    reason = getattr(type(exc), "stop_reason", None)
+    return reason if isinstance(reason, str) else None
 
 
 def warn(lines) -> None:

@@ -247,6 +247,31 @@ def test_sigterm_stops_a_dry_run_with_exit_143_and_one_line(files):
     assert [m.data["reason"] for m in contents.topic("/stop")] == ["terminated (SIGTERM)"]
 
 
+@pytest.mark.parametrize("stop, reason", [("sigterm", "terminated (SIGTERM)"),
+                                          ("ctrl-c", "interrupted (Ctrl-C)")])
+def test_a_log_stopped_before_its_run_began_says_so(tmp_path, stop, reason, capsys):
+    """A signal between the log's opening and the run's start (the simulated lever's
+    calibration, the plan: seconds on a loaded machine) closes the log with the /stop
+    the engine would have written; the SIGTERM test above hit that window at 0.5 s."""
+    from nanoasm import cli
+    from nanoasm.executor.logread import read_log
+    from nanoasm.harness import LogTo, run_logs
+
+    _, layout = particle_bowtie()
+    signals = {"sigterm": cli._Terminated, "ctrl-c": KeyboardInterrupt}
+    path = tmp_path / "early.mcap"
+    with pytest.raises(signals[stop]):
+        with run_logs(LogTo(path), layout, {"kind": "dry-run"}):
+            raise signals[stop]()
+    contents = read_log(path)
+    assert contents.complete
+    assert [m.data for m in contents.topic("/stop")] == [{"state": "aborted", "reason": reason}]
+    with pytest.raises(ValueError):             # any other error: the log closes without a word of its own
+        with run_logs(LogTo(tmp_path / "err.mcap"), layout, {"kind": "dry-run"}):
+            raise ValueError("x")
+    assert not read_log(tmp_path / "err.mcap").topic("/stop")
+
+
 def test_sigterm_outside_a_run_is_the_same_line(monkeypatch, capsys):
     """SIGTERM before the run engine runs (here: while a layout is read) is one line too."""
     from nanoasm import cli
