@@ -86,13 +86,16 @@ def scan_line(ctx: RunContext, a: np.ndarray, b: np.ndarray, n: int):
     (the median of the rest), so a pattern near the range's edge still works.
 
     The lines of one pattern are drift-compensated: each is shifted by the offset
-    predicted since the pattern's first line (``ctx.scan_ref``), so the pattern sees the
-    sample as it lay then, however fast creep moves it after a travel, and its result
+    predicted since the pattern's first line (``ctx.scan_ref``: when it began scanning,
+    after the switch back to tapping a push leaves it to wait for, 2 s in which the sample
+    drifts and creeps on), so the pattern sees the sample as it lay then, however fast
+    creep moves it after a travel, and its result
     is converted with the offset of that time. What that shift may err by is kept in
     ``ctx.scan_comp`` (the worst line's) and added to the pattern's result."""
     yield from approach(ctx, a)
     t_line = yield Msg("clock")
-    if ctx.scan_ref is None:
+    first = ctx.scan_ref is None
+    if first:
         ctx.scan_ref = t_line
     shift = ctx.offset(t_line) - ctx.offset(ctx.scan_ref)
     creep, comp = ctx.drift.compensation(ctx.scan_ref, t_line)
@@ -118,7 +121,9 @@ def scan_line(ctx: RunContext, a: np.ndarray, b: np.ndarray, n: int):
     switched = ctx.timing.switched(count, t - t0)
     ctx.ledger.times["mode_switch"] += switched          # the switch back to tapping before it
     ctx.timing.observe(count, t - t0)
-    ctx.drift.moved_to(ends[0], t0)
+    if first:               # a switch to tapping delays the first line: the sample it saw is then
+        ctx.scan_ref = t0 + switched
+    ctx.drift.moved_to(ends[0], t0 + switched)
     ctx.drift.moved_to(ends[1], t)
     if count < n:
         out = np.full(n, float(np.median(profile)))
