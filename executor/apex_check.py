@@ -171,15 +171,33 @@ def image_check(ctx: RunContext, centre, diameter: float, reach: float, label: s
         x0, y0 = min(x0, hi[0] - side), min(y0, hi[1] - side)
         x1, y1 = x0 + side, y0 + side
     scan, t1 = yield from scan_window(ctx, pixels, (x0, y0, x1, y1), f"check image of {label}")
-    heights = np.asarray(scan.height, float)
     px = float(scan.pixel_size)
+    heights, t = _unsheared(ctx, np.asarray(scan.height, float), px, t0, t1)
     apices, _ = find_apices(heights, px, diameter)
     corner = np.asarray(scan.origin, float)
-    line_time = (t1 - t0) / heights.shape[0]
     out = []
     for a in apices:
-        t = t0 + (min(max(a.row, 0.0), heights.shape[0] - 1.0) + 0.5) * line_time
         at = corner + np.asarray(a.at) - ctx.offset(t)
         out.append((a, at, t))
     out.sort(key=lambda item: math.dist(item[1], centre))
     return out, heights.shape[0]
+
+
+def _unsheared(ctx: RunContext, heights: np.ndarray, pixel: float, t0: float, t1: float):
+    """The image scanned from ``t0`` to ``t1`` resampled to where its content lay at the
+    middle row's time, by the drift estimate's offset between each row's time and that
+    (creep right after the travel to a slot draws a particle out along the slow axis over
+    the image's rows: on scale300 it read as a ridge, not a particle); and that time.
+    A pixel of row ``i`` holds what lay ``dev_i`` (the offset's change) before it."""
+    rows, cols = heights.shape
+    times = t0 + (np.arange(rows) + 0.5) * (t1 - t0) / rows
+    t_ref = float(times[rows // 2])
+    dev = (np.array([ctx.offset(v) for v in times]) - ctx.offset(t_ref)) / pixel
+    if not np.any(np.abs(dev) > 0.05):
+        return heights, t_ref
+    j, i = np.arange(cols, dtype=float), np.arange(rows, dtype=float)
+    out = np.array([np.interp(j, j - dev[r, 0], heights[r]) for r in range(rows)])
+    at = i - dev[:, 1]                       # where each row lies, in rows, at t_ref
+    if np.all(np.diff(at) > 0.0):           # a drift slower than a row a line (else left as scanned)
+        out = np.array([np.interp(i, at, out[:, c]) for c in range(cols)]).T
+    return out, t_ref
