@@ -143,13 +143,14 @@ def find_apices(height: np.ndarray, pixel: float, diameter: float) -> tuple[list
 
 def image_check(ctx: RunContext, centre, diameter: float, reach: float, label: str):
     """Scan a small image about ``centre`` (layout frame) and find the particle apexes in
-    it (plan stub). ``reach``: how far (nm) the particle may lie from ``centre``.
+    it (plan stub). ``reach``: how far (nm) the particle may lie from ``centre``. The
+    image is a drift-compensated raster of local-scan lines (:func:`.scan_steps.raster`).
 
     Returns (apexes as (Apex, position in the layout frame, time)) sorted by distance
     from ``centre``, and the image's pixels per side), or None where ``reach`` exceeds
     :data:`MAX_REACH` diameters or the window does not fit in the scanner's range.
     """
-    from .scan_steps import scan_window             # scan_steps looks with these images too
+    from .scan_steps import raster             # scan_steps looks with these images too
 
     if reach > MAX_REACH * diameter:
         return None
@@ -157,8 +158,7 @@ def image_check(ctx: RunContext, centre, diameter: float, reach: float, label: s
     half = diameter / 2.0 + reach + TIP_ALLOWANCE
     lo, hi = np.asarray(ctx.config.lower[:2], float), np.asarray(ctx.config.upper[:2], float)
     t0 = yield Msg("clock")
-    off = ctx.offset(t0)
-    middle = np.asarray(centre, float) + off
+    middle = np.asarray(centre, float) + ctx.offset(t0)
     x0, y0 = np.maximum(middle - half, lo)
     x1, y1 = np.minimum(middle + half, hi)
     side = min(x1 - x0, y1 - y0)
@@ -166,38 +166,10 @@ def image_check(ctx: RunContext, centre, diameter: float, reach: float, label: s
         return None
     pixels = max(8, min(math.ceil(side / pixel), math.floor(float(np.min(hi - lo)) / pixel)))
     side = pixels * pixel
-    x1, y1 = x0 + side, y0 + side
-    if x1 > hi[0] or y1 > hi[1]:
+    if x0 + side > hi[0] or y0 + side > hi[1]:
         x0, y0 = min(x0, hi[0] - side), min(y0, hi[1] - side)
-        x1, y1 = x0 + side, y0 + side
-    scan, t1 = yield from scan_window(ctx, pixels, (x0, y0, x1, y1), f"check image of {label}")
-    px = float(scan.pixel_size)
-    heights, t = _unsheared(ctx, np.asarray(scan.height, float), px, t0, t1)
-    apices, _ = find_apices(heights, px, diameter)
-    corner = np.asarray(scan.origin, float)
-    out = []
-    for a in apices:
-        at = corner + np.asarray(a.at) - ctx.offset(t)
-        out.append((a, at, t))
+    heights, corner, t = yield from raster(ctx, (x0, y0), pixels, pixel, f"check image of {label}")
+    apices, _ = find_apices(heights, pixel, diameter)
+    out = [(a, corner + np.asarray(a.at), t) for a in apices]
     out.sort(key=lambda item: math.dist(item[1], centre))
-    return out, heights.shape[0]
-
-
-def _unsheared(ctx: RunContext, heights: np.ndarray, pixel: float, t0: float, t1: float):
-    """The image scanned from ``t0`` to ``t1`` resampled to where its content lay at the
-    middle row's time, by the drift estimate's offset between each row's time and that
-    (creep right after the travel to a slot draws a particle out along the slow axis over
-    the image's rows: on scale300 it read as a ridge, not a particle); and that time.
-    A pixel of row ``i`` holds what lay ``dev_i`` (the offset's change) before it."""
-    rows, cols = heights.shape
-    times = t0 + (np.arange(rows) + 0.5) * (t1 - t0) / rows
-    t_ref = float(times[rows // 2])
-    dev = (np.array([ctx.offset(v) for v in times]) - ctx.offset(t_ref)) / pixel
-    if not np.any(np.abs(dev) > 0.05):
-        return heights, t_ref
-    j, i = np.arange(cols, dtype=float), np.arange(rows, dtype=float)
-    out = np.array([np.interp(j, j - dev[r, 0], heights[r]) for r in range(rows)])
-    at = i - dev[:, 1]                       # where each row lies, in rows, at t_ref
-    if np.all(np.diff(at) > 0.0):           # a drift slower than a row a line (else left as scanned)
-        out = np.array([np.interp(i, at, out[:, c]) for c in range(cols)]).T
-    return out, t_ref
+    return out, pixels

@@ -22,7 +22,7 @@ from .association import Candidate, associate, sighting
 from .progress_docs import PROGRESS, ProgressDoc
 from .apex_check import CROWDED, ROUND, image_check
 from .local_scan import particle_after, particle_after_predicted, particle_before, rod_after, rod_before
-from .scan_lines import LocalScanResult, make_line, measure_line
+from .scan_lines import LocalScanResult, ScanLine, make_line, measure_line
 from .lost_search import find_lost_particle
 from .rod_predicted import rod_after_predicted
 from .motion_steps import approach
@@ -31,9 +31,10 @@ from .motion_steps import approach
 DEFAULT_COV = 4.0
 
 
-def run_pattern(ctx: RunContext, pattern):
+def run_pattern(ctx: RunContext, pattern, what: str | None = None):
     """Run a local-scan pattern (a generator of lines, sent each line's profile) through
-    scan_line messages; returns its result. The travels to the lines count as travel."""
+    scan_line messages; returns its result. The travels to the lines count as travel.
+    ``what``: the scan's name in its progress line."""
     led = ctx.ledger
     t0 = yield Msg("clock")
     travel0, switch0 = led.times["travel"], led.times["mode_switch"]
@@ -57,7 +58,8 @@ def run_pattern(ctx: RunContext, pattern):
     t1 = yield Msg("clock")
     scanning = t1 - t0 - (led.times["travel"] - travel0) - (led.times["mode_switch"] - switch0)
     led.times["local_scan"] += scanning
-    yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"{lines} line(s), {scanning:.1f} s")))
+    said = f"{what}, " if what else ""
+    yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"{said}{lines} line(s), {scanning:.1f} s")))
     return result
 
 
@@ -158,6 +160,33 @@ def scan_window(ctx: RunContext, pixels: int, region, what: str):
     return scan, t1
 
 
+def raster(ctx: RunContext, corner, pixels: int, pixel: float, what: str):
+    """A drift-compensated image (plan stub): ``pixels`` scan lines of ``pixels`` samples
+    ``pixel`` nm apart, its lower-left corner at ``corner`` (scanner frame, now), every
+    other line scanned back the other way. Each line is a local-scan line, placed where
+    the drift estimate predicts its row when it is scanned (:func:`scan_line`), so creep
+    right after a travel neither draws the content out nor carries it past the rows (as
+    fast as the slow scan on ``scale300``, where a raster of the instrument's own showed
+    no particle); and a line of 21 samples costs a fifth of a full-scan line.
+
+    Returns the heights (rows from the bottom, nm), the image's lower-left corner in the
+    layout frame and the time its content is of, and counts one local scan, ``what``."""
+    x0, y0 = (float(v) for v in corner)
+    xa, xb = x0 + 0.5 * pixel, x0 + (pixels - 0.5) * pixel
+
+    def pattern():
+        rows = []
+        for r in range(pixels):
+            y = y0 + (r + 0.5) * pixel
+            ends = ((xa, y), (xb, y)) if r % 2 == 0 else ((xb, y), (xa, y))
+            profile = np.asarray((yield ScanLine(*ends, pixels, "image")), float)
+            rows.append(profile if r % 2 == 0 else profile[::-1])
+        return np.array(rows)
+
+    heights = yield from run_pattern(ctx, pattern(), what)
+    return heights, np.array([x0, y0]) - ctx.offset(ctx.scan_ref), ctx.scan_ref
+
+
 def clear_direction(ctx: RunContext, at, half: float, exclude=()) -> np.ndarray:
     """The direction of a particle's first scan line through ``at`` (layout frame) whose
     cross (that line and the perpendicular one, ``half`` nm to each side) stays farthest
@@ -254,9 +283,9 @@ def _locate_by_image(ctx: RunContext, obj_id: str, r_max: float, gate: float, re
                             f"shows no particle within {gate:.0f} nm",), {"level": "warn"})
         return None
     a, at, t = near[0]
-    cov = np.eye(2) * a.std ** 2
+    cov = np.eye(2) * a.std ** 2 + ctx.scan_comp          # what the image's compensation may err by
     res = LocalScanResult("particle_image", True, "found", centre=tuple(np.asarray(at) + ctx.offset(t)), cov=cov)
-    ctx.scan_ref, ctx.scan_comp, ctx.scan_creep = t, np.zeros((2, 2)), []    # the apex's row is its time
+    ctx.scan_ref, ctx.scan_creep = t, []            # the image's content is of its first line's time
     yield Msg("event", (f"{obj_id}: its lines ran into a neighbour; an image of {pixels} x {pixels} px shows a "
                         f"particle {math.dist(at, believed):.1f} nm from where it was believed, {a.height:.0f} nm high",))
     if not (yield from identify(ctx, obj_id, res, at, gate, resolve=resolve, height=a.height)):
