@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from nanoasm.bodies import Body
+from nanoasm.errors import InstrumentLimitError
 from nanoasm.planner import Expect, Operation, PlanOptions
 from nanoasm.world.cantilever import Cantilever
 
@@ -111,6 +112,19 @@ def _quarantine(ctx: RunContext, op: Operation, poses, plan_options: PlanOptions
     ctx.refs.pushed_near(area, ctx.belief)
 
 
+def _beyond_range(ctx: RunContext, obj_id: str, error: InstrumentLimitError):
+    """A push whose path, with the drift predicted over it, leaves the scanner's range
+    (nothing of it was sent): the drift has carried the object, or where it is to go,
+    out of the tip's reach. The object is given up, an obstacle where it is; the drift
+    goes on the same way, so trying it again would fail again."""
+    ledger = ctx.ledger
+    ledger.counts["failed_pushes"] += 1
+    ledger.fail(obj_id, "out of range")
+    ledger.given_up.add(obj_id)
+    yield Msg("event", (f"gave up on {obj_id}: its push would leave the scanner's range ({error}); "
+                        f"it stays where it is, an obstacle to the rest",), {"level": "error"})
+
+
 def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan_options: PlanOptions):
     """One push with its scans; returns "ok", "failed" or "lost"."""
     obj_id = op.object
@@ -152,13 +166,17 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
                 return "ok"
     # pressed to keep the tip down on this object, harder again for each slip over it
     preload = course.preload.get(obj_id, 1.0) * _load_factor(ctx, start, op, lever, plan_options.tip_radius)
-    if scans and start.kind == "particle":      # long pushes in legs, a line across between
-        verdict, legs, _ = yield from push_in_legs(ctx, op, start, lever, preload, plan_options.tip_radius,
-                                                  plan_options.lead)
-        if verdict is None:
-            return "ok"
-    else:
-        verdict, legs = (yield from stream_push(ctx, op, lever, preload)), 1
+    try:
+        if scans and start.kind == "particle":      # long pushes in legs, a line across between
+            verdict, legs, _ = yield from push_in_legs(ctx, op, start, lever, preload, plan_options.tip_radius,
+                                                      plan_options.lead)
+            if verdict is None:
+                return "ok"
+        else:
+            verdict, legs = (yield from stream_push(ctx, op, lever, preload)), 1
+    except InstrumentLimitError as e:
+        yield from _beyond_range(ctx, obj_id, e)
+        return "failed"
     ledger = ctx.ledger
     ledger.counts["pushes"] += legs
     ledger.pushed_once(obj_id)

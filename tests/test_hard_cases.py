@@ -389,3 +389,25 @@ def test_identical_objects():
     out = twice(particles_only(objs), Layout((1500.0, 1500.0), slots))
     assert len(out.filled) == 2 and max(out.errors.values()) <= 20.0
     assert len({a.object for a in out.report.assignment}) == 2
+
+
+# -- the drift carries a push beyond the scanner's range ---------------------------------
+
+def test_a_push_the_drift_carries_beyond_the_scanners_range_is_given_up_not_a_crash():
+    """A slot 70 nm from the sample's edge, a scanner 200 nm larger on each side, the
+    sample drifting -1.2 nm/s in x: by the time of the push the layout's edge lies beyond
+    the scanner's range, and the push's path with it. Nothing of it is sent (the DAC
+    path's range check); the object is given up, an obstacle, and the run goes on to fill
+    what it can reach (scale1000 seed 1 stopped with InstrumentLimitError after 10 h)."""
+    params = dataclasses.replace(EXACT, drift=DriftParams((-1.2, 0.0), 0.1),
+                                 scanner=dataclasses.replace(EXACT.scanner, xy_range=(4000.0, 4000.0)))
+    scene = Scene((3600.0, 3600.0), (Body("p1", "particle", (400.0, 1800.0), 90.0),
+                                     Body("p2", "particle", (2500.0, 1500.0), 90.0)), params=params, seed=1)
+    layout = Layout((3600.0, 3600.0), (Body("s1", "particle", (70.0, 1800.0), 90.0),
+                                       Body("s2", "particle", (2500.0, 2100.0), 90.0)))
+    texts = []
+    out = dryrun.dry_run(scene, layout, seed=1, options=ExecOptions(strategy="full"),
+                         subscribers=[lambda topic, doc: texts.append(doc.text) if topic == "event" else None])
+    assert [c for _, c in out.summary.failures] == ["out of range"]
+    assert any("would leave the scanner's range" in t and "nothing sent" in t for t in texts)
+    assert out.truly_filled == ("s2",) and out.verdict_filled == ("s2",) and not out.disagreements
