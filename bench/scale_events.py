@@ -2,7 +2,8 @@
 slots the truth fills and its own verdict, one JSON row a seed.
 
 The counts: references gated out as moved on their own, relocalisations begun and
-failed, pushes that slipped, objects not found where believed. Used to compare two
+failed, pushes that slipped (all, and by kind: :func:`_slips`), objects not found where
+believed. Used to compare two
 trees on the same seeds (run it once from each)::
 
     python bench/scale_events.py 300 1-3
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import time
 
 #: Row key -> the text its events contain.
@@ -36,10 +38,36 @@ def one(n: int, seed: int) -> dict:
     out = dry_run(scene, layout, seed=seed, options=ExecOptions(strategy="full"),
                   plan_options=PlanOptions(seed=seed), subscribers=[keep])
     row = {k: sum(v in x for x in texts) for k, v in EVENTS.items()}
+    row.update(_slips(texts))
     row.update(n=n, seed=seed, truly_filled=len(out.truly_filled), verdict=len(out.verdict_filled),
                disagree=len(out.disagreements), pushes=out.report.counts.pushes,
                instrument_s=round(out.report.instrument_time.total, 1), wall_s=round(time.perf_counter() - t, 1))
     return row
+
+
+def _slips(texts: list[str]) -> dict:
+    """The slips by kind: the push monitor's (a force signature), and pushes the scans
+    found had left their particle where it was (``slipped_over``); of these, how many
+    were tracked legs stopped on their contact angle within :data:`EARLY` nm, and of
+    those how many a line across then found within :data:`ON_LINE` nm of their line."""
+    over = [i for i, x in enumerate(texts) if "left it where it was" in x]
+    early = on_line = 0
+    for i in over:
+        oid = texts[i].split()[2]
+        legs = [x for x in texts[:i] if x.startswith(oid + ": leg")]
+        m = re.search(r"stopped short after (\d+) nm", legs[-1]) if legs else None
+        if m and float(m.group(1)) <= EARLY:
+            early += 1
+            across = re.search(r"([-+][\d.]+) nm off its line \(by a line across\)", legs[-1])
+            on_line += bool(across and abs(float(across.group(1))) <= ON_LINE)
+    return {"monitor_slips": sum(bool(re.match(r"push of \S+ slipped \(peak", x)) for x in texts),
+            "slipped_over": len(over), "stopped_early": early, "stopped_early_on_line": on_line}
+
+
+#: A tracked leg stopped within this (nm) is stopped at its contact's onset.
+EARLY = 40.0
+#: A particle a line across finds within this (nm) of its line was not sliding off the tip.
+ON_LINE = 4.0
 
 
 def _seeds(text: str) -> list[int]:

@@ -29,7 +29,7 @@ from .context import RunContext
 from .edges import TALLER_ONLY, TOUCHING
 from .engine import Msg
 
-__all__ = ["CROWDED", "Apex", "apex_pixel", "find_apices", "image_check"]
+__all__ = ["CROWDED", "Apex", "apex_cov", "apex_pixel", "find_apices", "image_check"]
 
 #: Why a line found nothing when a neighbour ran into it (the bump runs off the line's
 #: end, two bumps merge, or only a taller one is on the line): where the lines of a
@@ -63,13 +63,12 @@ TIP_ALLOWANCE = 12.0
 class Apex:
     """One apex found in an image: ``at`` (nm, the image's frame), its height above
     the substrate (nm), the ratio of its curvatures (1 for a sphere, near 0 along a
-    ridge), its 1-σ position precision (nm) and the image row it lies in."""
+    ridge) and its 1-σ position precision (nm)."""
 
     at: tuple[float, float]
     height: float
     roundness: float
     std: float
-    row: float
 
 
 def apex_pixel(diameter: float) -> float:
@@ -137,8 +136,14 @@ def find_apices(height: np.ndarray, pixel: float, diameter: float) -> tuple[list
             continue
         x0, y0, top, ratio, std = fit
         out.append(Apex(((j + 0.5 + x0) * pixel, (i + 0.5 + y0) * pixel), top, ratio,
-                        max(std * pixel, 0.1 * pixel), float(i + y0)))
+                        max(std * pixel, 0.1 * pixel)))
     return out, noise
+
+
+def apex_cov(ctx: RunContext, apex: Apex) -> np.ndarray:
+    """Covariance (nm²) of an apex of the last :func:`image_check`: its fit's precision
+    and what the image's lines' drift compensation may err by (``ctx.scan_comp``)."""
+    return np.eye(2) * apex.std ** 2 + ctx.scan_comp
 
 
 def image_check(ctx: RunContext, centre, diameter: float, reach: float, label: str):

@@ -48,7 +48,10 @@ class RunLedger:
 
     def trouble(self, obj_id: str, max_failures: int) -> bool:
         """One more push of ``obj_id`` failed or went astray; True when that makes
-        ``max_failures`` and the object is given up."""
+        ``max_failures`` and the object is given up. One already given up (its push
+        beyond the scanner's range) is not counted again."""
+        if obj_id in self.given_up:
+            return False
         self.troubles[obj_id] = self.troubles.get(obj_id, 0) + 1
         if self.troubles[obj_id] == max_failures:
             self.given_up.add(obj_id)

@@ -20,7 +20,7 @@ from .context import RunContext
 from .engine import Msg
 from .association import Candidate, associate, sighting
 from .progress_docs import PROGRESS, ProgressDoc
-from .apex_check import CROWDED, ROUND, image_check
+from .apex_check import CROWDED, ROUND, apex_cov, image_check
 from .local_scan import particle_after, particle_after_predicted, particle_before, rod_after, rod_before
 from .scan_lines import LocalScanResult, ScanLine, make_line, measure_line
 from .lost_search import find_lost_particle
@@ -283,7 +283,7 @@ def _locate_by_image(ctx: RunContext, obj_id: str, r_max: float, gate: float, re
                             f"shows no particle within {gate:.0f} nm",), {"level": "warn"})
         return None
     a, at, t = near[0]
-    cov = np.eye(2) * a.std ** 2 + ctx.scan_comp          # what the image's compensation may err by
+    cov = apex_cov(ctx, a)
     res = LocalScanResult("particle_image", True, "found", centre=tuple(np.asarray(at) + ctx.offset(t)), cov=cov)
     ctx.scan_ref, ctx.scan_creep = t, []            # the image's content is of its first line's time
     yield Msg("event", (f"{obj_id}: its lines ran into a neighbour; an image of {pixels} x {pixels} px shows a "

@@ -26,7 +26,7 @@ import numpy as np
 
 from nanoasm.cad.layout import Layout
 
-from .apex_check import CROWDED, ROUND, image_check
+from .apex_check import CROWDED, ROUND, apex_cov, image_check
 from .context import RunContext
 from .drift_steps import suspect_drift
 from .engine import Msg
@@ -259,4 +259,4 @@ def _by_image(ctx: RunContext, target, reach: float, tol, why: str) -> Any:
     yield Msg("event", (f"slot {target.id}: {why}; an image of {pixels} x {pixels} px shows "
                         + ("a particle" if a.roundness >= ROUND else "a ridge, no particle,")
                         + f" {math.dist(at, target.at):.1f} nm from it, {a.height:.0f} nm high",))
-    return _Sighting(at, t, np.eye(2) * a.std ** 2 + ctx.scan_comp, size_ok, a.roundness >= ROUND)
+    return _Sighting(at, t, apex_cov(ctx, a), size_ok, a.roundness >= ROUND)
