@@ -8,10 +8,11 @@ much further along ``s`` than commanded, so the sample appears shifted back: cre
 input from each measurement and adds it to each predicted offset; its state keeps the
 thermal drift alone.
 
-Only recent large moves matter: the remaining creep rate of a move,
-``c |s| / (ln 10 (τ + t - t_s))``, falls as ``1/t``. :class:`CreepHistory` freezes the
-creep of a move whose rate has fallen below ``rate_tol`` into a constant and forgets
-the move, so the input stays continuous and the list stays short.
+The remaining creep rate of a move, ``c |s| / (ln 10 (τ + t - t_s))``, falls as ``1/t``
+but never stops. :class:`CreepHistory` keeps the recent moves one by one and hands a
+move whose rate has fallen below ``rate_tol`` (or the oldest, past ``max_moves``) to
+:class:`~nanoasm.drift.frozen_creep.FrozenMoves`, which goes on summing its creep
+exactly in a size that does not grow with the number of moves.
 """
 
 from __future__ import annotations
@@ -22,6 +23,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from nanoasm.param import param, validate
+
+from .frozen_creep import BIN0, BIN_AGE, FrozenMoves
+
+#: Youngest age (s) at which a move past ``max_moves`` is frozen: a bin then sums it to
+#: (1/15)^6 of its step (:mod:`.frozen_creep`); until then it is kept, beyond the count.
+FROZEN_AGE = BIN_AGE * BIN0
 
 
 @dataclass(frozen=True)
@@ -179,8 +186,11 @@ class CreepHistory:
 
     def __init__(self, params: CreepModelParams):
         self.params = params
+        self.old = FrozenMoves(params.tau)  # the moves no longer kept, still creeping
+        # a constant creep and its steps from a checkpoint of before FrozenMoves (moves
+        # frozen then stopped creeping); zero otherwise
         self.frozen = np.zeros(2)
-        self.frozen_steps = np.zeros(2)     # the frozen moves' steps, summed
+        self.frozen_steps = np.zeros(2)
         self._times: list[float] = []
         self._steps: list[tuple[float, float]] = []
 
@@ -219,21 +229,29 @@ class CreepHistory:
         self.prune(t)
         self._times.append(float(t))
         self._steps.append((sx, sy))
-        if len(self._times) > p.max_moves:
-            self._freeze(np.arange(len(self._times)) < len(self._times) - p.max_moves, t)
+        if len(self._times) > p.max_moves:     # the oldest, once old enough to bin (FROZEN_AGE)
+            self._freeze((np.arange(len(self._times)) < len(self._times) - p.max_moves)
+                         & (self.times <= t - FROZEN_AGE), t)
         return True
+
+    def frozen_offset(self, t: float) -> np.ndarray:
+        """(2,) array: the creep input (nm) at ``t`` of the moves no longer kept."""
+        return self.frozen - self.params.amplitude * self.old(t)
+
+    def frozen_rate(self, t: float) -> np.ndarray:
+        """(2,) array: the time derivative (nm/s) of :meth:`frozen_offset` at ``t``."""
+        return -self.params.amplitude * self.old.rate(t)
 
     def offset(self, t: float) -> np.ndarray:
         """(2,) array: the creep input (nm) at ``t``, frozen part included."""
         p = self.params
-        return self.frozen + creep_offset(t, self.times, self.steps, p.amplitude, p.tau)
+        return self.frozen_offset(t) + creep_offset(t, self.times, self.steps, p.amplitude, p.tau)
 
     def tau_sensitivity(self, t: float) -> np.ndarray:
         """(2,) array: ``∂ offset / ∂ ln τ`` (nm) at ``t`` (:func:`creep_tau_sensitivity`),
-        frozen part included: a frozen move's creep rate fell below ``rate_tol``, so its
-        ``x`` is large and it counts in full."""
+        frozen part included."""
         p = self.params
-        return (p.amplitude / math.log(10.0) * self.frozen_steps
+        return (p.amplitude / math.log(10.0) * (self.frozen_steps + self.old.tau_weights(t))
                 + creep_tau_sensitivity(t, self.times, self.steps, p.amplitude, p.tau))
 
     def cov_sqrt(self, t: float) -> np.ndarray:
@@ -264,10 +282,8 @@ class CreepHistory:
     def _freeze(self, mask: np.ndarray, t: float) -> int:
         if not mask.any():
             return 0
-        p = self.params
         times, steps = self.times, self.steps
-        self.frozen = self.frozen + creep_offset(t, times[mask], steps[mask], p.amplitude, p.tau)
-        self.frozen_steps = self.frozen_steps + steps[mask].sum(axis=0)
+        self.old.add(t, times[mask], steps[mask])
         self._times = times[~mask].tolist()
         self._steps = [tuple(s) for s in steps[~mask].tolist()]
         return int(mask.sum())
@@ -298,10 +314,11 @@ class CreepingOffset:
                                 np.array([t for t, _ in pending], float).reshape(-1)])
         steps = np.vstack([history.steps, np.array([s for _, s in pending], float).reshape(-1, 2)])
         old = times <= self.t_ref - linear_after
-        at_ref = history.frozen * float(scale) + creep_offset(self.t_ref, times[old], steps[old], self.amplitude,
-                                                             self.tau)
-        rate = -(creep_rate(self.t_ref, times[old], steps[old], self.amplitude, self.tau)[:, None]
-                 * _unit_rows(steps[old])).sum(axis=0)
+        at_ref = history.frozen_offset(self.t_ref) * float(scale) + creep_offset(
+            self.t_ref, times[old], steps[old], self.amplitude, self.tau)
+        rate = history.frozen_rate(self.t_ref) * float(scale) - (
+            creep_rate(self.t_ref, times[old], steps[old], self.amplitude, self.tau)[:, None]
+            * _unit_rows(steps[old])).sum(axis=0)
         self.constant = np.asarray(thermal, float).reshape(2) + at_ref
         self.velocity = np.asarray(velocity, float).reshape(2) + rate
         self.times, self.steps = times[~old], steps[~old]

@@ -17,6 +17,7 @@ import numpy as np
 from nanoasm.param import ParamError, number, param, validate
 
 from .creep import CreepHistory, CreepModelParams
+from .frozen_creep import FrozenMoves
 from .folding import Batch, Folded, fold, gram
 from .gating import gate_threshold, nis_sqrt, weighted_mean
 from .kalman import H_OFFSET, STATE_DIM, _check_state, process_noise_sqrt, symmetrize, transition
@@ -174,7 +175,7 @@ class DriftFilter:
                 "statics": self.statics - int(self.learn_creep),
                 "learn_creep": self.learn_creep, "tau_static": self.tau_static,
                 "creep": {"frozen": c.frozen.tolist(), "times": c.times.tolist(), "steps": c.steps.tolist(),
-                          "frozen_steps": c.frozen_steps.tolist()}}
+                          "frozen_steps": c.frozen_steps.tolist(), "old": c.old.state()}}
 
     @classmethod
     def from_state(cls, params: DriftFilterParams, state: dict) -> DriftFilter:
@@ -193,6 +194,7 @@ class DriftFilter:
         else:
             x, L = _check_state(state["x"], state["L"])      # the factor L checked as P would be
             f = cls(params, epoch=float(state["epoch"]))
+        f.creep.old = FrozenMoves.from_state(params.creep.tau, state["creep"].get("old", {}))
         for t, step in zip(state["creep"]["times"], state["creep"]["steps"]):
             f.creep.record(float(t), step)
         f.creep.frozen = np.asarray(state["creep"]["frozen"], float).reshape(2)
@@ -315,7 +317,7 @@ class DriftFilter:
         c = self.creep
         # the executor asks for the same few times over and over (a scan pattern's first
         # line and each of its lines): answers are kept per time while the state stands
-        state = (self._tau, self._x.tobytes(), self._L.tobytes(), len(c), c.frozen.tobytes(),
+        state = (self._tau, self._x.tobytes(), self._L.tobytes(), len(c), c.frozen.tobytes(), c.old.revision,
                  c._times[-1] if len(c) else None)
         if self._offset_cache is None or self._offset_cache[0] != state:
             self._offset_cache = (state, {})
