@@ -163,6 +163,7 @@ class DriftFilter:
         self._streak: list[Batch] = []  # batches rejected since then
         self.resumed_measurements = 0    # measurements made before a resume
         self._offset_cache: tuple | None = None
+        self._propagated: dict = {}        # (state, t) -> _propagate's answer
 
     # -- saving and resuming ------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -276,9 +277,19 @@ class DriftFilter:
         return np.vstack([Q, np.zeros((self.statics, Q.shape[1]))])
 
     def _propagate(self, t: float):
-        tau, dt = self._relative(t)
-        x, L = self._predict(self._x, self._L, dt)
-        return tau, dt, x, L, self._noise_sqrt(dt)
+        """``(tau, dt, x, L, Q_sqrt)``: the state predicted to ``t`` (copies; the last few
+        kept while the state stands: choosing a reference predicts to one time for every
+        candidate)."""
+        key = (self._tau, self._x.tobytes(), self._L.tobytes(), float(t))
+        memo = self._propagated
+        if key not in memo:
+            if len(memo) >= 8:
+                memo.clear()
+            tau, dt = self._relative(t)
+            x, L = self._predict(self._x, self._L, dt)
+            memo[key] = (tau, dt, x, L, self._noise_sqrt(dt))
+        tau, dt, x, L, Q = memo[key]
+        return tau, dt, x.copy(), L.copy(), Q.copy()
 
     def _commit(self, tau, dt, x, L, x_prior, L_prior, Q_sqrt, kind, creep=None,
                 creep_sqrt=None) -> None:
