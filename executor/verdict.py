@@ -126,14 +126,16 @@ def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous
     if only is not None and (previous is None or len(previous) != len(layout.targets)):
         raise ValueError("check_slots: 'only' needs the previous verdict of every slot")
     for again in (False, True):
-        out = []
-        for k, target in enumerate(layout.targets):
-            if only is not None and target.id not in only:
-                out.append(previous[k])
-                continue
+        out = list(previous) if only is not None else [None] * len(layout.targets)
+        todo = [k for k, target in enumerate(layout.targets) if only is None or target.id in only]
+        t = yield Msg("clock")
+        here = yield Msg("position")
+        start = ctx.config.codes_to_nm(np.asarray(here))[:2] - ctx.offset(t)
+        for k in tour(start, [layout.targets[k].at for k in todo]):
+            target = layout.targets[todo[k]]
             obj = assigned.get(target.id)
             verdict = yield from _check_slot(ctx, target, obj, layout.tolerance)
-            out.append(verdict)
+            out[todo[k]] = verdict
             if not again and verdict.state == "missed" and (yield from suspect_drift(ctx, obj, target.at)):
                 yield Msg("event", ("the drift estimate was relocalised during the check scans: "
                                     f"every slot{'' if only is None else ' of these'} is scanned again",),
@@ -142,6 +144,25 @@ def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous
         else:
             break
     return tuple(out)
+
+
+def tour(start, points) -> list[int]:
+    """The order (indices into ``points``, layout frame nm) in which the check visits
+    them from ``start``: each next the nearest not yet visited (ties by index). In the
+    layout's order a grid is checked row by row, and each row's first slot came right
+    after a travel back across the whole area: on ``scale1000`` seed 2 the creep of those
+    36 µm travels put the lines of all 17 slots of the grid's first column 35 nm and more
+    from their particles, and the verdict called them missed, twice."""
+    pts = np.asarray(points, float).reshape(-1, 2)
+    left = np.ones(len(pts), bool)
+    at, order = np.asarray(start, float).reshape(2), []
+    for _ in range(len(pts)):
+        d = np.where(left, np.hypot(*(pts - at).T), np.inf)
+        k = int(np.argmin(d))
+        order.append(k)
+        left[k] = False
+        at = pts[k]
+    return order
 
 
 def check_again(ctx: RunContext, layout: Layout, assignment, verdicts) -> Any:
