@@ -193,20 +193,19 @@ class CreepHistory:
         self.frozen_steps = np.zeros(2)
         self._times: list[float] = []
         self._steps: list[tuple[float, float]] = []
-        self._changes = 0                   # one more at every change of the kept moves
-        self._cache: tuple | None = None    # (n, changes) -> their arrays
-        self._memos: tuple | None = None    # (the moves' state, {(what, t): value})
+        self.version = 0                    # one more at every change of the moves, kept or frozen
+        self._cache: tuple | None = None    # (version, times, steps): the kept moves as arrays
+        self._memos: tuple | None = None    # (version, {(what, t): value})
 
     def _kept(self) -> tuple[np.ndarray, np.ndarray]:
         """The kept moves as read-only arrays, made again only when they change (the
         filter asks for them at every prediction: as lists made into arrays each time,
         a fifth of a 1000-object run's executor time)."""
-        n = len(self._times)
-        if self._cache is None or self._cache[0] != (n, self._changes):
+        if self._cache is None or self._cache[0] != self.version:
             times = np.asarray(self._times, float)
             steps = np.asarray(self._steps, float).reshape(-1, 2)
             times.flags.writeable = steps.flags.writeable = False
-            self._cache = ((n, self._changes), times, steps)
+            self._cache = (self.version, times, steps)
         return self._cache[1], self._cache[2]
 
     @property
@@ -244,11 +243,20 @@ class CreepHistory:
         self.prune(t)
         self._times.append(float(t))
         self._steps.append((sx, sy))
-        self._changes += 1
+        self.version += 1
         if len(self._times) > p.max_moves:     # the oldest, once old enough to bin (FROZEN_AGE)
             self._freeze((np.arange(len(self._times)) < len(self._times) - p.max_moves)
                          & (self.times <= t - FROZEN_AGE), t)
         return True
+
+    def restore(self, old: dict, frozen=(0.0, 0.0), frozen_steps=(0.0, 0.0)) -> None:
+        """Take the frozen moves of a checkpoint: ``old``, :meth:`FrozenMoves.state`'s;
+        ``frozen``, ``frozen_steps``, the constant creep of one from before
+        :class:`FrozenMoves`."""
+        self.old = FrozenMoves.from_state(self.params.tau, old)
+        self.frozen = np.asarray(frozen, float).reshape(2)
+        self.frozen_steps = np.asarray(frozen_steps, float).reshape(2)
+        self.version += 1
 
     def frozen_offset(self, t: float) -> np.ndarray:
         """(2,) array: the creep input (nm) at ``t`` of the moves no longer kept."""
@@ -262,9 +270,8 @@ class CreepHistory:
         """``make()`` for ``what`` at ``t``, kept while the moves stand: a prediction asks
         for the same time's creep several times over (a choice of reference, for each
         candidate)."""
-        key = (len(self._times), self._changes, id(self.old), self.old.revision, self.frozen.tobytes(), self.frozen_steps.tobytes())
-        if self._memos is None or self._memos[0] != key:
-            self._memos = (key, {})
+        if self._memos is None or self._memos[0] != self.version:
+            self._memos = (self.version, {})
         known = self._memos[1]
         if (what, t) not in known:
             if len(known) >= 32:
@@ -318,7 +325,7 @@ class CreepHistory:
         self.old.add(t, times[mask], steps[mask])
         self._times = times[~mask].tolist()
         self._steps = [tuple(s) for s in steps[~mask].tolist()]
-        self._changes += 1
+        self.version += 1
         return int(mask.sum())
 
 

@@ -17,7 +17,6 @@ import numpy as np
 from nanoasm.param import ParamError, number, param, validate
 
 from .creep import CreepHistory, CreepModelParams
-from .frozen_creep import FrozenMoves
 from .folding import Batch, Folded, fold, gram
 from .gating import gate_threshold, nis_sqrt, weighted_mean
 from .kalman import H_OFFSET, STATE_DIM, _check_state, process_noise_sqrt, symmetrize, transition
@@ -195,11 +194,10 @@ class DriftFilter:
         else:
             x, L = _check_state(state["x"], state["L"])      # the factor L checked as P would be
             f = cls(params, epoch=float(state["epoch"]))
-        f.creep.old = FrozenMoves.from_state(params.creep.tau, state["creep"].get("old", {}))
-        for t, step in zip(state["creep"]["times"], state["creep"]["steps"]):
+        c = state["creep"]
+        f.creep.restore(c.get("old", {}), c["frozen"], c.get("frozen_steps", (0.0, 0.0)))
+        for t, step in zip(c["times"], c["steps"]):
             f.creep.record(float(t), step)
-        f.creep.frozen = np.asarray(state["creep"]["frozen"], float).reshape(2)
-        f.creep.frozen_steps = np.asarray(state["creep"].get("frozen_steps", (0.0, 0.0)), float).reshape(2)
         f._commit(tau, 0.0, x, L, x, L, np.zeros((x.shape[0], 0)), "resume")
         f._anchor = (len(f.history) - 1, tau)
         f.resumed_measurements = int(state.get("measured", 0))
@@ -328,8 +326,7 @@ class DriftFilter:
         c = self.creep
         # the executor asks for the same few times over and over (a scan pattern's first
         # line and each of its lines): answers are kept per time while the state stands
-        state = (self._tau, self._x.tobytes(), self._L.tobytes(), len(c), c.frozen.tobytes(), c.old.revision,
-                 c._times[-1] if len(c) else None)
+        state = (self._tau, self._x.tobytes(), self._L.tobytes(), c.version)
         if self._offset_cache is None or self._offset_cache[0] != state:
             self._offset_cache = (state, {})
         known = self._offset_cache[1]

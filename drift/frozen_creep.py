@@ -5,8 +5,8 @@ rate falls as ``1/t`` but never stops, and over a long run the slow tails of tho
 moves add up. Freezing each old move's creep into a constant (what
 :class:`~nanoasm.drift.creep.CreepHistory` did) dropped those tails: on a 1000-object
 scene (``scale1000``, seed 1) the 256 moves kept were a few minutes' worth, and the
-estimate fell 10-30 nm behind the simulated instrument's creep within one 60 s survey
-image, while it reported σ 4-7 nm (its references then failed the gate one after
+estimate fell 6-8 nm further behind the simulated truth in each 60 s survey image (5 to
+25 nm over three), while it reported σ 4-7 nm (its references then failed the gate one after
 another and a relocalisation followed).
 
 :class:`FrozenMoves` keeps them exactly, in a size independent of their number: the
@@ -48,12 +48,16 @@ class FrozenMoves:
     def __init__(self, tau: float):
         self.tau = float(tau)
         self.bins: dict[tuple[int, int], np.ndarray] = {}     # (level, index) -> (ORDER + 1, 2) moments
-        self.steps = np.zeros(2)                               # Σ s_i of every frozen move
         self.revision = 0                                      # one more at every change of the bins
         self._arrays: tuple | None = None                      # the bins as arrays, at a revision
 
     def __len__(self) -> int:
         return len(self.bins)
+
+    @property
+    def steps(self) -> np.ndarray:
+        """(2,): ``Σ s_i`` of every frozen move (the bins' zeroth moments)."""
+        return sum((m[0] for m in self.bins.values()), np.zeros(2))
 
     @staticmethod
     def _centre(level: int, index: int) -> float:
@@ -74,7 +78,6 @@ class FrozenMoves:
             if m is None:
                 m = self.bins[key] = np.zeros((ORDER + 1, 2))
             m += ((t - self._centre(*key)) ** k)[:, None] * s[None, :]
-            self.steps = self.steps + s
         self.revision += 1
         self._merge(now)
 
@@ -137,9 +140,8 @@ class FrozenMoves:
         return moments[:, 0, :].sum(axis=0) - self.tau * np.einsum("bk,bkj->j", inv[:, 1:ORDER + 2], moments)
 
     def state(self) -> dict:
-        """JSON types: the bins (level, index, moments) and the steps' sum."""
-        return {"bins": [[level, index, m.tolist()] for (level, index), m in sorted(self.bins.items())],
-                "steps": self.steps.tolist()}
+        """JSON types: the bins (level, index, moments)."""
+        return {"bins": [[level, index, m.tolist()] for (level, index), m in sorted(self.bins.items())]}
 
     @classmethod
     def from_state(cls, tau: float, state: dict) -> FrozenMoves:
@@ -150,7 +152,6 @@ class FrozenMoves:
                 raise ValueError(f"a frozen creep bin's moments must be finite, shape ({ORDER + 1}, 2)")
             out.bins[(int(level), int(index))] = m
         out.revision += 1
-        out.steps = np.asarray(state.get("steps", (0.0, 0.0)), float).reshape(2)
         return out
 
 
