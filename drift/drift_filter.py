@@ -156,6 +156,8 @@ class DriftFilter:
         #: steps that revised the estimate other than by time (measurements, resets): a
         #: position converted with it before and after one differs by the revision
         self.revision = 0
+        #: every change of the state (time steps too): a value derived from it stands while this does
+        self.commits = 0
         self._commit(self._tau, 0.0, self._x, self._L, self._x, self._L, np.zeros((n, 0)), "start")
         self.measurements: list[Measurement] = []
         self._anchor = (0, self._tau)  # history index and tau of the last accepted state
@@ -295,6 +297,7 @@ class DriftFilter:
         if creep is None:
             creep, creep_sqrt = self.creep.offset(tau), self.creep.cov_sqrt(tau)
         self._tau, self._x, self._L = tau, x.copy(), L.copy()
+        self.commits += 1
         if kind not in ("predict", "move", "inflate"):
             self.revision += 1
         self.history.append(HistoryEntry(
@@ -519,6 +522,43 @@ class DriftFilter:
         H = self._rows(N, static, tau)
         A = np.hstack([H @ L, N @ self.creep.cov_sqrt(tau)])
         return H @ x + N @ self.creep.offset(tau), gram(A)
+
+    def _rows_many(self, N: np.ndarray, statics: np.ndarray, tau: float) -> np.ndarray:
+        """:meth:`_rows` for each of ``statics`` ((K, m, statics)), (K, m, n): the
+        same sums, taken at once."""
+        user = self.statics - int(self.learn_creep)
+        S = np.asarray(statics, float)
+        if S.ndim != 3 or S.shape[1:] not in ((N.shape[0], user), (N.shape[0], user + 1)) \
+                or not np.all(np.isfinite(S)):
+            raise ValueError(f"statics must be a finite (K, {N.shape[0]}, {user}) array")
+        H = np.repeat(self._rows(N, None, tau)[None], S.shape[0], axis=0)
+        H[:, :, STATE_DIM:STATE_DIM + user] += S[:, :, :user]
+        if self.learn_creep and S.shape[2] == user + 1:
+            H[:, :, -1] += S[:, :, user]
+        return H
+
+    def projected_many(self, t: float, directions, statics) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`projected` for each of ``statics`` ((K, m, statics)) at once: means (K, m)
+        and covariances (K, m, m)."""
+        N = np.asarray(directions, float).reshape(-1, 2)
+        tau, _, x, L, _ = self._propagate(t)
+        H = self._rows_many(N, statics, tau)
+        cc = N @ self.creep.cov_sqrt(tau)
+        A = np.concatenate([H @ L, np.broadcast_to(cc, (H.shape[0], *cc.shape))], axis=2)
+        return H @ x + N @ self.creep.offset(tau), symmetrize(A @ np.swapaxes(A, 1, 2))
+
+    def information_many(self, t: float, directions, R, statics) -> np.ndarray:
+        """:meth:`information` for each of ``statics`` ((K, m, statics)) at once, (K,)."""
+        N = np.asarray(directions, float).reshape(-1, 2)
+        tau, _, x, L, _ = self._propagate(t)
+        H = self._rows_many(N, statics, tau)
+        Ht = np.swapaxes(H, 1, 2)
+        O = self._rows(np.eye(2), None, tau)
+        cc = N @ self.creep.cov_sqrt(tau)
+        P = gram(L)
+        S = H @ P @ Ht + cc @ cc.T + np.asarray(R, float)
+        cross = O @ P @ Ht + self.creep.cov_sqrt(tau) @ cc.T
+        return np.einsum("kij,kij->k", cross, np.swapaxes(np.linalg.solve(S, np.swapaxes(cross, 1, 2)), 1, 2))
 
     def information(self, t: float, directions, R, static=None) -> float:
         """How much measuring ``N offset + static θ`` at ``t`` with covariance ``R``

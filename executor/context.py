@@ -89,13 +89,14 @@ class RunContext:
             at = self.drift.unskew(at, self.belief.seen[obj_id].t - self.drift.epoch)
         return at
 
-    def r_max(self, t: float, obj_id: str | None = None) -> float:
+    def r_max(self, t: float, obj_id: str | None = None, full_scan=None) -> float:
         """Largest expected error of a believed position at ``t``, nm, scaled by the
-        options' ``line_factor`` (at least ``r_max_floor``)."""
+        options' ``line_factor`` (at least ``r_max_floor``). ``full_scan``: the
+        covariance of where the full scan's row of ``obj_id`` now lies, when known."""
         o = self.options
         seen = self.belief.seen.get(obj_id) if obj_id is not None else None
         skew = seen.t - self.drift.epoch if seen is not None and obj_id in self.refs.raw else None
-        return o.line_factor * max(self.drift.radius(t, seen, skew, o), o.r_max_floor)
+        return o.line_factor * max(self.drift.radius(t, seen, skew, o, full_scan), o.r_max_floor)
 
     def to_layout(self, scanner: Body, t: float) -> Body:
         """A measured pose (scanner frame) in the layout frame, by the present estimate."""

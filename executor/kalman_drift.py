@@ -26,7 +26,7 @@ from nanoasm.drift.creep import CreepingOffset, CreepModelParams
 from . import creep_terms
 from .reference_choice import Candidate, best, object_candidates
 from .references import References
-from .scan_drift import EPS, LAM, PARAMETERS, ScanDrift
+from .scan_drift import EPS, LAM, PARAMETERS, ScanDrift, filter_theta
 from .strategy import ExecOptions
 from .trust import Trust
 
@@ -62,6 +62,7 @@ class Kalman:
         self.move_log: list[tuple[float, np.ndarray]] = []   # replayed when restarted
         self.creep_anchor: np.ndarray | None = None   # where the last recorded move ended, nm
         self.trust = Trust()                          # references rejected in a row, relocalisations
+        self._scan_theta = None                       # (filter, its commits, θ, cov) as last read
         # the drift the full scan's rows carried (the filter's own velocity follows the
         # drift as it changes later)
         c = self.params.creep
@@ -103,12 +104,10 @@ class Kalman:
         """The full scan's drift model ``θ`` and its covariance: the filter's once it
         holds them (after the bootstrap), the bootstrap's before."""
         if self.filter.statics:
-            old = self.filter.tau_static is None          # a checkpoint from before λ: λ = 0
-            idx = [*range(4, 4 + SCAN_STATICS), -1, -1 if old else 4 + self.filter.tau_static]
-            scale = np.ones(len(idx))                      # θ's thermal part, c ε, λ
-            scale[EPS], scale[LAM] = 1.0 / self.params.creep.amplitude, 0.0 if old else 1.0
-            P = self.filter.P
-            return self.filter.x[idx] * scale, P[np.ix_(idx, idx)] * np.outer(scale, scale)
+            f, kept = self.filter, self._scan_theta          # kept while the filter's state stands
+            if kept is None or kept[0] is not f or kept[1] != f.commits:
+                kept = self._scan_theta = (f, f.commits, *filter_theta(f, SCAN_STATICS, self.params.creep.amplitude))
+            return kept[2].copy(), kept[3].copy()
         return self.scan.theta, self.scan.cov
 
     def static_rows(self, normals, taus) -> np.ndarray:
@@ -189,12 +188,13 @@ class Kalman:
         t = self.clamp(t)
         return self.filter.projected(t, np.eye(2), self.static_rows(np.eye(2), [tau, tau]))[1]
 
-    def radius(self, t: float, seen, skew_tau: float | None, options: ExecOptions) -> float:
-        """3σ error of a believed position: the sighting's and, for a position known
-        from the full scan alone, where that row's point is now; else the offset's."""
+    def radius(self, t: float, seen, skew_tau: float | None, options: ExecOptions, full_scan=None) -> float:
+        """3σ error of a believed position: the sighting's and, for a position known from the
+        full scan alone, where that row's point is now (``full_scan``: its :meth:`full_scan_cov`,
+        if known); else the offset's."""
         cov = np.zeros((2, 2)) if seen is None else np.asarray(seen.cov, float)
         if seen is not None and skew_tau is not None:
-            cov = cov + self.full_scan_cov(t, skew_tau)
+            cov = cov + (self.full_scan_cov(t, skew_tau) if full_scan is None else full_scan)
         else:
             cov = cov + self.offset_cov(t)
         return 3.0 * math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0))

@@ -42,6 +42,8 @@ KNOWN_VELOCITY_STD = 0.05
 PARAMETERS = 6
 #: Indices of the creep amplitude's relative error ``ε`` and of ``λ = δ ln τ_c`` in ``θ``.
 EPS, LAM = 4, 5
+#: Rows' creep terms kept at most (then forgotten at once and made again as asked for).
+CREEP_TERMS_KEPT = 8192
 
 
 class ScanDrift:
@@ -57,6 +59,7 @@ class ScanDrift:
         self.cov = np.diag([velocity_std ** 2] * 2 + [acceleration_std ** 2] * 2 + [max(rel, 1e-9) ** 2]
                            + [max(tau_std, 1e-9) ** 2])
         self.creep = (float(creep_amplitude), float(creep_tau))
+        self._creep_terms: dict[float, tuple[np.ndarray, np.ndarray]] = {}   # by τ: (J, creep)
         self.moves = np.zeros((0, 3))
         self.ended = False                   # the full scan has ended
         self.info = np.zeros((PARAMETERS, PARAMETERS))   # what the references measured
@@ -74,14 +77,37 @@ class ScanDrift:
         """``∂v(τ)/∂θ``: the thermal drift velocity at ``τ``, (2, 6)."""
         return np.hstack([np.eye(2), np.eye(2) * tau, np.zeros((2, 2))])
 
+    @property
+    def moves(self) -> np.ndarray:
+        """The moves made before the full scan ended, rows of ``(t, sx, sy)``."""
+        return self._moves
+
+    @moves.setter
+    def moves(self, value) -> None:
+        self._moves = np.asarray(value, float).reshape(-1, 3)
+        self._creep_terms.clear()
+
+    def _terms(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(∂D(τ)/∂θ, the scan's moves' creep at τ)``, kept by ``τ`` while the moves
+        stand: every position taken from the full scan is put back by its row's, hundreds
+        of thousands of times in a 1000-object run, at a thousand distinct rows."""
+        key = float(tau)
+        got = self._creep_terms.get(key)
+        if got is None:
+            if len(self._creep_terms) >= CREEP_TERMS_KEPT:
+                self._creep_terms.clear()
+            a, tc = self.creep
+            t, m = self.epoch + key, self._moves
+            J = self.thermal_jacobian(key)
+            J[:, EPS] = creep_offset(t, m[:, 0], m[:, 1:], a, tc)
+            J[:, LAM] = creep_tau_sensitivity(t, m[:, 0], m[:, 1:], a, tc)
+            got = self._creep_terms[key] = (J, J[:, EPS].copy())
+        return got
+
     def jacobian(self, tau: float) -> np.ndarray:
         """``∂D(τ)/∂θ``, (2, 6): ``ε``'s column is the nominal creep of the scan's moves,
         ``λ``'s their creep per unit ``δ ln τ_c``."""
-        J = self.thermal_jacobian(tau)
-        J[:, EPS] = self.creep_at(tau)
-        a, tc = self.creep
-        J[:, LAM] = creep_tau_sensitivity(self.epoch + tau, self.moves[:, 0], self.moves[:, 1:], a, tc)
-        return J
+        return self._terms(tau)[0].copy()
 
     @property
     def known(self) -> bool:
@@ -90,8 +116,7 @@ class ScanDrift:
 
     def creep_at(self, tau: float) -> np.ndarray:
         """The creep (nm) of the moves made before the full scan ended, at ``τ``."""
-        a, tc = self.creep
-        return creep_offset(self.epoch + tau, self.moves[:, 0], self.moves[:, 1:], a, tc)
+        return self._terms(tau)[1].copy()
 
     def offset(self, tau: float) -> np.ndarray:
         """``D(τ)``, nm: the drift the full scan's row of time ``τ`` carried."""
@@ -119,7 +144,7 @@ class ScanDrift:
 
     def scan_ended(self, moves) -> None:
         """The full scan has ended; ``moves``: the scanner moves so far, ``(t, step)``."""
-        self.moves = np.array([[t, s[0], s[1]] for t, s in moves], float).reshape(-1, 3)
+        self.moves = np.array([[t, s[0], s[1]] for t, s in moves], float)
         self.ended = True
 
     def measure(self, n, z: float, tau1: float, tau0: float, var: float, creep1=None, lam1=None,
@@ -205,3 +230,15 @@ class ScanDrift:
         out.info, out.eta = np.asarray(state["info"], float), np.asarray(state["eta"], float)
         out.ended = bool(state["ended"])
         return out
+
+
+def filter_theta(f, thermal: int, amplitude: float) -> tuple[np.ndarray, np.ndarray]:
+    """``θ`` and its covariance as a drift filter ``f`` holds them once bootstrapped: its
+    first ``thermal`` statics, the learnt creep amplitude error ``c ε`` (last) per the
+    nominal ``amplitude``, and ``λ`` (0 in a filter from before it)."""
+    old = f.tau_static is None          # a checkpoint from before λ: λ = 0
+    idx = [*range(4, 4 + thermal), -1, -1 if old else 4 + f.tau_static]
+    scale = np.ones(len(idx))            # θ's thermal part, c ε, λ
+    scale[EPS], scale[LAM] = 1.0 / amplitude, 0.0 if old else 1.0
+    P = f.P
+    return f.x[idx] * scale, P[np.ix_(idx, idx)] * np.outer(scale, scale)

@@ -124,10 +124,15 @@ class ScanOptions:
     def resolved(self, diameter: float) -> ScanOptions:
         """These options with every default filled in for an object of ``diameter``."""
         d = number("diameter", diameter, positive=True)
-        spacing = self.spacing if self.spacing is not None else min(1.0, d / 20)
-        margin = self.margin if self.margin is not None else d / 2 + 10 * spacing
+        spacing, margin = self.sampling(d)
         height = self.height if self.height is not None else d
         return replace(self, spacing=spacing, margin=margin, height=height)
+
+    def sampling(self, diameter: float) -> tuple[float, float]:
+        """``(spacing, margin)`` (nm) of :meth:`resolved` for an object of ``diameter``,
+        without making the options (choosing among a thousand references)."""
+        spacing = self.spacing if self.spacing is not None else min(1.0, diameter / 20)
+        return spacing, self.margin if self.margin is not None else diameter / 2 + 10 * spacing
 
 
 #: The options every pattern uses unless given others.
