@@ -69,10 +69,8 @@ def bodies_scene(bodies, prefix: str, colour, stamp, delete=(), lift=None):
     """Bodies (``Body.to_dict()`` documents): particles as spheres, rods and wires as
     boxes along their axis, with their ids, each as entity ``prefix:id``; the entities
     ``prefix:id`` of ``delete`` removed. Each rests on z = 0, or on ``lift(body)`` (nm)."""
-    from foxglove.messages import (Color, CubePrimitive, SceneEntityDeletion, SceneUpdate,
-                                   SpherePrimitive, TextPrimitive, Vector3)
+    from foxglove.messages import SceneEntityDeletion, SceneUpdate
 
-    col = Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3])
     entities = []
     for b in bodies:
         try:
@@ -81,17 +79,38 @@ def bodies_scene(bodies, prefix: str, colour, stamp, delete=(), lift=None):
         except (KeyError, TypeError, ValueError):
             continue
         z = lift(b) if lift is not None else 0.0
-        text = TextPrimitive(pose=_pose(x, y, z + d), billboard=True, font_size=12.0, scale_invariant=True,
-                             color=col, text=str(b.get("id", "")))
-        if b.get("length") is not None and b.get("angle") is not None:
-            shape = {"cubes": [CubePrimitive(pose=_pose(x, y, z + d / 2, float(b["angle"])),
-                                             size=Vector3(x=float(b["length"]), y=d, z=d), color=col)]}
-        else:
-            shape = {"spheres": [SpherePrimitive(pose=_pose(x, y, z + d / 2), size=Vector3(x=d, y=d, z=d),
-                                                 color=col)]}
-        entities.append(_entity(f"{prefix}:{b.get('id')}", stamp, texts=[text], **shape))
+        length, angle = b.get("length"), b.get("angle")
+        key = (tuple(colour), str(b.get("id", "")), x, y, d, z,
+               *((float(length), float(angle)) if length is not None and angle is not None else ()))
+        shapes = _SHAPES.get(key)
+        if shapes is None:
+            if len(_SHAPES) >= SHAPES_KEPT:
+                _SHAPES.clear()
+            shapes = _SHAPES[key] = _shapes(key)
+        entities.append(_entity(f"{prefix}:{b.get('id')}", stamp, texts=[shapes[0]], **shapes[1]))
     deletions = [SceneEntityDeletion(timestamp=stamp, id=f"{prefix}:{i}") for i in delete]
     return SceneUpdate(entities=entities, deletions=deletions)
+
+
+#: A body's primitives by (colour, id, x, y, diameter, z[, length, angle]): a run log draws
+#: every body after every push (twice: ``/belief`` and the 3-D view), and between two
+#: pushes most have not moved (a 1000-object run: 10 s of its compute to make them anew).
+_SHAPES: dict[tuple, tuple] = {}
+SHAPES_KEPT = 50_000
+
+
+def _shapes(key: tuple) -> tuple:
+    """(label, {"spheres" or "cubes": [primitive]}) of :func:`bodies_scene`'s ``key``."""
+    from foxglove.messages import Color, CubePrimitive, SpherePrimitive, TextPrimitive, Vector3
+
+    colour, ident, x, y, d, z, *rod = key
+    col = Color(r=colour[0], g=colour[1], b=colour[2], a=colour[3])
+    text = TextPrimitive(pose=_pose(x, y, z + d), billboard=True, font_size=12.0, scale_invariant=True,
+                         color=col, text=ident)
+    if rod:
+        return text, {"cubes": [CubePrimitive(pose=_pose(x, y, z + d / 2, rod[1]), size=Vector3(x=rod[0], y=d, z=d),
+                                              color=col)]}
+    return text, {"spheres": [SpherePrimitive(pose=_pose(x, y, z + d / 2), size=Vector3(x=d, y=d, z=d), color=col)]}
 
 
 def believed(checkpoint: dict) -> tuple[list[dict], list]:

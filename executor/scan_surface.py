@@ -36,6 +36,8 @@ MAX_SIDE = 256
 #: Heights are rounded to this step (nm) before they are exaggerated: below an AFM's
 #: noise, and the bowtie's mesh compresses to 638 kB instead of 837 kB.
 HEIGHT_STEP = 0.1
+#: Resting heights kept at most (then forgotten at once and found again as asked for).
+REST_KEPT = 100_000
 #: What the channel holds (the log's channel table and docs/logs.md say the same).
 DESCRIPTION = (f"the full scan as a 3-D surface (glTF model; heights x{HEIGHT_EXAGGERATION:g}), "
                "with the objects on it, identified then believed after each push")
@@ -186,6 +188,19 @@ class SurfaceView:
     def __init__(self, log: Callable[[str, Any, float | None], None], stamp: Callable[[float | None], Any]):
         self._log, self._stamp = log, stamp
         self.surface: Surface | None = None
+        self._rests: dict[tuple, float] = {}
+
+    def _rest(self, body: dict) -> float:
+        """:meth:`Surface.rest`, kept by the body's pose and size: a checkpoint redraws every
+        object, and between two of them most have not moved (a 1000-object run: 520
+        redraws of 1000, 34 s of its compute when each was found again)."""
+        key = tuple(repr(body.get(k)) for k in ("at", "diameter", "length", "angle"))
+        z = self._rests.get(key)
+        if z is None:
+            if len(self._rests) >= REST_KEPT:
+                self._rests.clear()
+            z = self._rests[key] = self.surface.rest(body)
+        return z
 
     def __call__(self, topic: str, doc: dict, t: float | None) -> None:
         if topic == FULL_SCAN:
@@ -203,8 +218,9 @@ class SurfaceView:
             self._log("/events", log_line(self._stamp(t), "warning", f"no {SURFACE_TOPIC}: {err}"), t)
             return
         self.surface = surface
+        self._rests.clear()
         self._log(SURFACE_TOPIC, msg, t)
 
     def _draw(self, bodies, lost, colour, t: float | None) -> None:
-        rest = self.surface.rest if self.surface is not None else None
+        rest = self._rest if self.surface is not None else None
         self._log(SURFACE_TOPIC, bodies_scene(bodies, "obj", colour, self._stamp(t), delete=lost, lift=rest), t)
