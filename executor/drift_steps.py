@@ -81,14 +81,16 @@ def take_reference(ctx: RunContext, near, obj_id: str | None = None, *, force: b
     ctx.ledger.purposes["reference"] += t_end - t
 
 
-def suspect_drift(ctx: RunContext, label: str, near):
+def suspect_drift(ctx: RunContext, label: str, near, *, count: bool = True):
     """``label`` was not where the estimate put it: perhaps it moved, perhaps the drift
-    jumped. It counts as a rejected reference, and a reference is measured at once: out
-    of place too, the estimate is relocalised. Returns whether it was."""
+    jumped. It counts as a rejected reference (unless not ``count``: a push that lost its
+    object says nothing of where the drift put it), and a reference is measured at once:
+    out of place too, the estimate is relocalised. Returns whether it was."""
     if not ctx.drift.uses_landmarks:
         return False
     t = yield Msg("clock")
-    ctx.drift.reject(label, t)
+    if count:
+        ctx.drift.reject(label, t)
     yield from take_reference(ctx, near, label, force=True)
     return (yield from keep_track(ctx))
 

@@ -355,3 +355,14 @@ def test_the_drift_filter_counts_revisions_not_time():
     assert f.revision == r0 + 1
     f.reinitialise(13.0, (0.0, 0.0), np.eye(2))
     assert f.revision == r0 + 2
+
+
+def test_a_push_that_lost_its_object_is_no_rejected_reference_but_one_not_found_after_is():
+    from nanoasm.executor.drift_steps import suspect_drift
+
+    ctx, fake = _ctx()
+    for _ in range(3):                     # failed pushes: a reference is asked for, none counted
+        drive(suspect_drift(ctx, "a", (1000.0, 1000.0), count=False), fake)
+    assert ctx.drift.trust.rejected == [] and ctx.drift.needs_relocalisation(fake.t, ctx.options) is None
+    drive(suspect_drift(ctx, "a", (1000.0, 1000.0)), fake)      # not where its after-scan looked
+    assert ctx.drift.trust.rejected == ["a"]
