@@ -83,15 +83,24 @@ def take_reference(ctx: RunContext, near, obj_id: str | None = None, *, force: b
 
 def suspect_drift(ctx: RunContext, label: str, near, *, count: bool = True):
     """``label`` was not where the estimate put it: perhaps it moved, perhaps the drift
-    jumped. It counts as a rejected reference (unless not ``count``: a push that lost its
-    object says nothing of where the drift put it), and a reference is measured at once:
-    out of place too, the estimate is relocalised. Returns whether it was."""
+    jumped. It counts as a rejected reference, and a reference is measured at once: out
+    of place too, the estimate is relocalised. Returns whether it was.
+
+    Not ``count``: a push lost its object, which says nothing of where the drift put it
+    (slips are common at scale), so references alone decide: one at once, and while each
+    is rejected another, up to the streak that relocalises. A drift jump under the tip
+    rejects them all; a reference the slipped object shoved is one, and the next ends
+    the streak."""
     if not ctx.drift.uses_landmarks:
         return False
     t = yield Msg("clock")
     if count:
         ctx.drift.reject(label, t)
-    yield from take_reference(ctx, near, label, force=True)
+    for _ in range(1 if count else ctx.options.relocalise_rejections):
+        before = ctx.drift.trust.rejections
+        yield from take_reference(ctx, near, label, force=True)
+        if ctx.drift.trust.rejections <= before:      # agreed (the streak ended), or none left
+            break
     return (yield from keep_track(ctx))
 
 

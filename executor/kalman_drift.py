@@ -231,12 +231,14 @@ class Kalman:
         return t - f.time >= options.reference_every or self.sigma(t) > options.reference_sigma
 
     def reference_target(self, ctx, t: float, near, obj_id, *, force: bool = False) -> Candidate | None:
-        """The reference to scan before a push of ``obj_id`` near ``near`` (None: not
-        due, unless ``force``, or none left): of the untouched particles and the fixed
-        features, the one of most information per second."""
+        """The reference to scan before a push of ``obj_id`` near ``near`` (None: not due,
+        unless ``force``, or none left): of the untouched particles and the fixed features,
+        the one of most information per second; not one the present streak rejected (out
+        of place again, it tells nothing new: a missed feature is not retired at once)."""
         if not (force or self.wants_reference(t, ctx.options)):
             return None
-        return best([*object_candidates(ctx, self, t, FULL_SCAN_VAR), *ctx.landmarks.candidates(ctx, self, t)])
+        cands = [*object_candidates(ctx, self, t, FULL_SCAN_VAR), *ctx.landmarks.candidates(ctx, self, t)]
+        return best([c for c in cands if c.id not in self.trust.rejected])
 
     def _consistent(self, t: float, z: np.ndarray, static: np.ndarray, R: np.ndarray) -> bool:
         """Whether an offset measured at ``t`` against the full scan agrees with the
@@ -285,10 +287,7 @@ class Kalman:
         static = None if taus is None else self.static_rows(H, taus)
         z, static = creep_terms.with_creep(self, z, static, creep_sens)
         m = self.filter.measure_projected(self.clamp(t), z, H, R, label=feature_id, static=static)
-        if m.accepted:
-            self._accepted(t)
-        else:
-            self.reject(feature_id, t)
+        self._accepted(t) if m.accepted else self.reject(feature_id, t)
         return m.accepted
 
     def reject(self, label: str, t: float) -> None:

@@ -190,11 +190,10 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
         yield Msg("event", (f"push of {obj_id} {verdict.status} (peak force {verdict.peak_force:.0f} nN)",),
                   {"level": "warn"})
         if scans:
-            # the tip lost its object: perhaps the drift jumped under it, so a reference
-            # first. The lost object itself is no evidence of a jump (slips are common: on
-            # scale1000 seed 3, 207; each counted, one nearby reference shoved by the slipped
-            # particle made two in a row and a relocalisation, 28 in the run, 250 s each,
-            # every one to a window 20-30 nm off); not found by its after-scan, it counts.
+            # the tip lost its object: perhaps the drift jumped under it, so references
+            # first. The lost object itself is no evidence of a jump (on scale1000 seed 3,
+            # 207 slips; counted, it and one reference the slipped particle shoved made two
+            # in a row: 28 relocalisations of 250 s, each to a window 20-30 nm off)
             yield from suspect_drift(ctx, obj_id, op.expect.at, count=False)
     if scans:
         after = yield from scan_after(ctx, op, start)

@@ -366,3 +366,25 @@ def test_a_push_that_lost_its_object_is_no_rejected_reference_but_one_not_found_
     assert ctx.drift.trust.rejected == [] and ctx.drift.needs_relocalisation(fake.t, ctx.options) is None
     drive(suspect_drift(ctx, "a", (1000.0, 1000.0)), fake)      # not where its after-scan looked
     assert ctx.drift.trust.rejected == ["a"]
+
+
+def test_after_a_failed_push_references_are_taken_while_each_is_rejected(monkeypatch):
+    import nanoasm.executor.drift_steps as steps
+
+    ctx, fake = _ctx()
+    taken = []
+
+    def reference(ctx_, near, obj_id=None, *, force=False):       # each reference: the next verdict
+        yield Msg("clock")
+        ok = verdicts.pop(0)
+        taken.append(ok)
+        (ctx_.drift.trust.accept if ok else lambda t: ctx_.drift.reject(f"r{len(taken)}", t))(0.0)
+
+    monkeypatch.setattr(steps, "take_reference", reference)
+    monkeypatch.setattr(steps, "keep_track", lambda ctx_: (yield from ()) or False)
+    for verdicts, want in (([True], [True]), ([False, True], [False, True]), ([False, False], [False, False])):
+        taken.clear()
+        ctx.drift.trust.accept()
+        drive(steps.suspect_drift(ctx, "a", (1000.0, 1000.0), count=False), fake)
+        assert taken == want                  # a shoved reference, then one that agrees; or a jump
+    assert ctx.drift.trust.rejections == ctx.options.relocalise_rejections      # the jump's streak
