@@ -280,7 +280,7 @@ class DriftFilter:
         """``(tau, dt, x, L, Q_sqrt)``: the state predicted to ``t`` (copies; the last few
         kept while the state stands: choosing a reference predicts to one time for every
         candidate)."""
-        key = (self._tau, self._x.tobytes(), self._L.tobytes(), float(t))
+        key = (self.commits, float(t))
         memo = self._propagated
         if key not in memo:
             if len(memo) >= 8:
@@ -329,7 +329,7 @@ class DriftFilter:
         c = self.creep
         # the executor asks for the same few times over and over (a scan pattern's first
         # line and each of its lines): answers are kept per time while the state stands
-        state = (self._tau, self._x.tobytes(), self._L.tobytes(), c.version)
+        state = (self.commits, c.version)
         if self._offset_cache is None or self._offset_cache[0] != state:
             self._offset_cache = (state, {})
         known = self._offset_cache[1]
@@ -537,28 +537,22 @@ class DriftFilter:
             H[:, :, -1] += S[:, :, user]
         return H
 
-    def projected_many(self, t: float, directions, statics) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`projected` for each of ``statics`` ((K, m, statics)) at once: means (K, m)
-        and covariances (K, m, m)."""
-        N = np.asarray(directions, float).reshape(-1, 2)
-        tau, _, x, L, _ = self._propagate(t)
-        H = self._rows_many(N, statics, tau)
-        cc = N @ self.creep.cov_sqrt(tau)
-        A = np.concatenate([H @ L, np.broadcast_to(cc, (H.shape[0], *cc.shape))], axis=2)
-        return H @ x + N @ self.creep.offset(tau), symmetrize(A @ np.swapaxes(A, 1, 2))
-
-    def information_many(self, t: float, directions, R, statics) -> np.ndarray:
-        """:meth:`information` for each of ``statics`` ((K, m, statics)) at once, (K,)."""
+    def weigh_many(self, t: float, directions, R, statics) -> tuple[np.ndarray, np.ndarray]:
+        """For each of ``statics`` ((K, m, statics)) at once, predicted at ``t`` once:
+        :meth:`projected`'s covariance (K, m, m) and :meth:`information` with ``R`` (K,),
+        by the same sums (choosing among a thousand references)."""
         N = np.asarray(directions, float).reshape(-1, 2)
         tau, _, x, L, _ = self._propagate(t)
         H = self._rows_many(N, statics, tau)
         Ht = np.swapaxes(H, 1, 2)
-        O = self._rows(np.eye(2), None, tau)
         cc = N @ self.creep.cov_sqrt(tau)
+        A = np.concatenate([H @ L, np.broadcast_to(cc, (H.shape[0], *cc.shape))], axis=2)
+        O = self._rows(np.eye(2), None, tau)
         P = gram(L)
         S = H @ P @ Ht + cc @ cc.T + np.asarray(R, float)
         cross = O @ P @ Ht + self.creep.cov_sqrt(tau) @ cc.T
-        return np.einsum("kij,kij->k", cross, np.swapaxes(np.linalg.solve(S, np.swapaxes(cross, 1, 2)), 1, 2))
+        gains = np.einsum("kij,kij->k", cross, np.swapaxes(np.linalg.solve(S, np.swapaxes(cross, 1, 2)), 1, 2))
+        return symmetrize(A @ np.swapaxes(A, 1, 2)), gains
 
     def information(self, t: float, directions, R, static=None) -> float:
         """How much measuring ``N offset + static θ`` at ``t`` with covariance ``R``

@@ -270,7 +270,7 @@ class Kalman:
             refs.moved(obj_id, ref, seen_t)
             return False
         if self.filter.measure_projected(self.clamp(t), z, np.eye(2), R, label=obj_id, static=static).accepted:
-            self._accepted(t)
+            self.trust.accept(t)
             return True
         refs.moved(obj_id, ref, seen_t)
         self.reject(obj_id, t)
@@ -287,15 +287,15 @@ class Kalman:
         static = None if taus is None else self.static_rows(H, taus)
         z, static = creep_terms.with_creep(self, z, static, creep_sens)
         m = self.filter.measure_projected(self.clamp(t), z, H, R, label=feature_id, static=static)
-        self._accepted(t) if m.accepted else self.reject(feature_id, t)
+        if m.accepted:
+            self.trust.accept(t)
+        else:
+            self.reject(feature_id, t)
         return m.accepted
 
     def reject(self, label: str, t: float) -> None:
         """A reference was rejected, or not found where it should be, at ``t``."""
         self.trust.reject(label, t)
-
-    def _accepted(self, t: float) -> None:
-        self.trust.accept(t)
 
     # -- relocalisation (when: :class:`~nanoasm.executor.trust.Trust`) ---------------------
     def needs_relocalisation(self, t: float, options: ExecOptions) -> tuple[str, str] | None:

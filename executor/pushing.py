@@ -193,7 +193,7 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
             # the tip lost its object: perhaps the drift jumped under it, so references
             # first. The lost object itself is no evidence of a jump (on scale1000 seed 3,
             # 207 slips; counted, it and one reference the slipped particle shoved made two
-            # in a row: 28 relocalisations of 250 s, each to a window 20-30 nm off)
+            # in a row; 28 relocalisations of 250 s, most to a window 12-34 nm off)
             yield from suspect_drift(ctx, obj_id, op.expect.at, count=False)
     if scans:
         after = yield from scan_after(ctx, op, start)

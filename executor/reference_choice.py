@@ -82,22 +82,18 @@ def object_candidates(ctx, est, t: float, full_scan_var: float) -> list[Candidat
 
 def _terms(ctx, est, t: float, ids, R) -> tuple[np.ndarray, np.ndarray]:
     """For each of the objects ``ids``: the covariance of where its full-scan row lies at
-    ``t`` (:meth:`~.kalman_drift.Kalman.full_scan_cov`) and the information its scan would
-    give (:meth:`~.kalman_drift.Kalman.information`), (K, 2, 2) and (K,). Once the filter
-    holds the full scan's drift model, both come from one batched projection (a
-    thousand candidates at every reference choice of a 1000-object run: 0.4 s a choice
-    one by one); before, one by one."""
+    ``t`` (:meth:`~.kalman_drift.Kalman.full_scan_cov`; what :meth:`RunContext.r_max` adds
+    for an object seen only in the full scan, whose sighting is that row's) and the
+    information its scan would give (:meth:`~.kalman_drift.Kalman.information`), (K, 2, 2)
+    and (K,). Once the filter holds the full scan's drift model, both come from one
+    batched projection (a thousand candidates at every reference choice of a 1000-object
+    run: 0.4 s a choice one by one); before, one by one."""
     taus = [ctx.refs.first_seen[oid][1] - est.epoch for oid in ids]
-    rows = [ctx.belief.seen[oid].t - est.epoch if oid in ctx.belief.seen else tau for oid, tau in zip(ids, taus)]
-    f = est.filter
-    if not f.statics:
-        return (np.array([est.full_scan_cov(t, tau) for tau in rows]),
-                np.array([est.information(t, np.eye(2), est.static_rows(np.eye(2), [tau, tau]), R) for tau in taus]))
-    tc = est.clamp(t)
-    statics = np.array([est.static_rows(np.eye(2), [tau, tau]) for tau in taus])
-    if rows != taus:
-        statics = np.concatenate([statics, [est.static_rows(np.eye(2), [tau, tau]) for tau in rows]])
-    return f.projected_many(tc, np.eye(2), statics[-len(ids):])[1], f.information_many(tc, np.eye(2), R, statics[:len(ids)])
+    statics = [est.static_rows(np.eye(2), [tau, tau]) for tau in taus]
+    if not est.filter.statics:
+        return (np.array([est.full_scan_cov(t, tau) for tau in taus]),
+                np.array([est.information(t, np.eye(2), s, R) for s in statics]))
+    return est.filter.weigh_many(est.clamp(t), np.eye(2), R, np.array(statics))
 
 
 def best(candidates) -> Candidate | None:

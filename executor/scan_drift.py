@@ -42,8 +42,8 @@ KNOWN_VELOCITY_STD = 0.05
 PARAMETERS = 6
 #: Indices of the creep amplitude's relative error ``ε`` and of ``λ = δ ln τ_c`` in ``θ``.
 EPS, LAM = 4, 5
-#: Rows' creep terms kept at most (then forgotten at once and made again as asked for).
-CREEP_TERMS_KEPT = 8192
+#: Rows' Jacobians kept at most (then forgotten at once and made again as asked for).
+JACOBIANS_KEPT = 8192
 
 
 class ScanDrift:
@@ -59,7 +59,7 @@ class ScanDrift:
         self.cov = np.diag([velocity_std ** 2] * 2 + [acceleration_std ** 2] * 2 + [max(rel, 1e-9) ** 2]
                            + [max(tau_std, 1e-9) ** 2])
         self.creep = (float(creep_amplitude), float(creep_tau))
-        self._creep_terms: dict[float, tuple[np.ndarray, np.ndarray]] = {}   # by τ: (J, creep)
+        self._jacobians: dict[float, np.ndarray] = {}   # by τ, while the moves stand
         self.moves = np.zeros((0, 3))
         self.ended = False                   # the full scan has ended
         self.info = np.zeros((PARAMETERS, PARAMETERS))   # what the references measured
@@ -85,29 +85,30 @@ class ScanDrift:
     @moves.setter
     def moves(self, value) -> None:
         self._moves = np.asarray(value, float).reshape(-1, 3)
-        self._creep_terms.clear()
+        self._jacobians.clear()
 
-    def _terms(self, tau: float) -> tuple[np.ndarray, np.ndarray]:
-        """``(∂D(τ)/∂θ, the scan's moves' creep at τ)``, kept by ``τ`` while the moves
-        stand: every position taken from the full scan is put back by its row's, hundreds
-        of thousands of times in a 1000-object run, at a thousand distinct rows."""
+    def _jacobian(self, tau: float) -> np.ndarray:
+        """``∂D(τ)/∂θ``, kept by ``τ`` while the moves stand (read-only): every position
+        taken from the full scan is put back by its row's, hundreds of thousands of times
+        in a 1000-object run, at a thousand distinct rows."""
         key = float(tau)
-        got = self._creep_terms.get(key)
-        if got is None:
-            if len(self._creep_terms) >= CREEP_TERMS_KEPT:
-                self._creep_terms.clear()
+        J = self._jacobians.get(key)
+        if J is None:
+            if len(self._jacobians) >= JACOBIANS_KEPT:
+                self._jacobians.clear()
             a, tc = self.creep
             t, m = self.epoch + key, self._moves
             J = self.thermal_jacobian(key)
             J[:, EPS] = creep_offset(t, m[:, 0], m[:, 1:], a, tc)
             J[:, LAM] = creep_tau_sensitivity(t, m[:, 0], m[:, 1:], a, tc)
-            got = self._creep_terms[key] = (J, J[:, EPS].copy())
-        return got
+            J.flags.writeable = False
+            self._jacobians[key] = J
+        return J
 
     def jacobian(self, tau: float) -> np.ndarray:
         """``∂D(τ)/∂θ``, (2, 6): ``ε``'s column is the nominal creep of the scan's moves,
         ``λ``'s their creep per unit ``δ ln τ_c``."""
-        return self._terms(tau)[0].copy()
+        return self._jacobian(tau).copy()
 
     @property
     def known(self) -> bool:
@@ -116,7 +117,7 @@ class ScanDrift:
 
     def creep_at(self, tau: float) -> np.ndarray:
         """The creep (nm) of the moves made before the full scan ended, at ``τ``."""
-        return self._terms(tau)[1].copy()
+        return self._jacobian(tau)[:, EPS].copy()
 
     def offset(self, tau: float) -> np.ndarray:
         """``D(τ)``, nm: the drift the full scan's row of time ``τ`` carried."""
