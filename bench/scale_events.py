@@ -3,7 +3,9 @@ slots the truth fills and its own verdict, one JSON row a seed.
 
 The counts: references gated out as moved on their own, relocalisations begun and
 failed, pushes that slipped (all, and by kind: :func:`_slips`), objects not found where
-believed. Used to compare two
+believed; ``edge``: slots the verdict calls filled at a measured error beyond 0.6 of the
+tolerance (:mod:`nanoasm.executor.edge_slots`); ``rms`` and ``worst``: the centre errors
+(nm) of the slots the truth fills (:func:`bench_pushes.truth_errors`). Used to compare two
 trees on the same seeds (run it once from each)::
 
     python bench/scale_events.py 300 1-3
@@ -13,9 +15,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import re
 import time
 
+from bench_pushes import truth_errors
+
+#: A filled slot measured beyond this fraction of the position tolerance is at its edge.
+EDGE = 0.6
 #: Row key -> the text its events contain.
 EVENTS = {"moved_on_own": "moved on its own", "relocalising": "relocalising the drift",
           "reloc_failed": "relocalisation failed", "slipped": "slipped", "not_found": "not found"}
@@ -39,8 +46,14 @@ def one(n: int, seed: int) -> dict:
                   plan_options=PlanOptions(seed=seed), subscribers=[keep])
     row = {k: sum(v in x for x in texts) for k, v in EVENTS.items()}
     row.update(_slips(texts))
+    tol = layout.tolerance.position
+    truth = truth_errors(layout, out.report.final_objects)
     row.update(n=n, seed=seed, truly_filled=len(out.truly_filled), verdict=len(out.verdict_filled),
-               disagree=len(out.disagreements), pushes=out.report.counts.pushes,
+               disagree=len(out.disagreements),
+               edge=sum(v.state == "filled" and v.error is not None and v.error > EDGE * tol
+                        for v in out.report.slots),
+               rms=round(math.sqrt(sum(e * e for e in truth) / len(truth)), 2) if truth else None,
+               worst=round(max(truth), 1) if truth else None, pushes=out.report.counts.pushes,
                instrument_s=round(out.report.instrument_time.total, 1), wall_s=round(time.perf_counter() - t, 1))
     return row
 

@@ -45,13 +45,12 @@ from .pushing import push
 from .landmarks import Landmarks, moved_area
 from .lever_file import lever_line
 from .references import References
-from .repair import repair_round
+from .repair import final_check, repair_round
 from .reviewed_plan import ReviewedPlan, first_plan
 from .scan_area import ScanArea
 from .checkpoints import checkpoint, restore
 from .strategy import ExecOptions
 from .summary import RunSummary, summary
-from .verdict import STATES, check_slots
 
 Procedure = Generator[Msg, Any, RunSummary]
 
@@ -84,6 +83,7 @@ class Assembly:
         self.env: Environment | None = None      # identified by the first full scan
         self.first_plan = None
         self.slots: tuple = ()                   # the verdict of the final check scans
+        self.recheck: set[str] | None = None     # the slots the next check scans (None: all)
 
     # -- the run --------------------------------------------------------------------
     def procedure(self, config) -> Procedure:
@@ -203,11 +203,7 @@ class Assembly:
         planned from it (:mod:`.repair`), checked again."""
         while True:
             done = yield from self._pushes(ops, i, done, corrections)
-            # the verdict: what a scan finds in every slot, not what the belief expects
-            self.slots = yield from check_slots(self.ctx, self.layout, summary(self).assignment)
-            counts = {s: sum(v.state == s for v in self.slots) for s in STATES}
-            yield Msg("event", (f"check scans of the {len(self.slots)} slot(s): " +
-                                ", ".join(f"{n} {s}" for s, n in counts.items()),))
+            yield from final_check(self)        # the verdict: what scans find, not the belief
             ops, i, done = (yield from repair_round(self, done)), 0, 0
             if not ops:
                 break
@@ -257,7 +253,8 @@ class Assembly:
                            + (", objects moved by a relocalisation" if moved else ""))
                     ops, i, done = (yield from self.replan(done, f"{op.object} {outcome} ({why})")), 0, 0
                 elif op.target is not None and all(p.object != op.object for p in ops[i:]):
-                    extra = courses.correction(self.layout, ctx.belief, op, corrections, opts.max_corrections,
+                    extra = courses.correction(self.layout, ctx.belief, op.target, op.object, corrections,
+                                               opts.max_corrections,
                                                self.plan_options, max(p.id for p in ops) + 1)
                     if extra is not None:
                         ledger.counts["replans"] += 1

@@ -102,15 +102,16 @@ def tight(layout: Layout):
     return replace(t, position=t.position * 0.6, angle=t.angle * 0.6)
 
 
-def correction(layout: Layout, belief: Belief, op: Operation, used: dict[str, int], max_corrections: int,
-               options: PlanOptions, first_id: int) -> list[Operation] | None:
-    """Pushes that bring an object that missed its slot back in (a single-object plan,
-    its operations numbered from ``first_id``); None when none is needed or allowed.
-    ``used`` counts the corrections per object (at most ``max_corrections``)."""
+def correction(layout: Layout, belief: Belief, target_id: str, obj_id: str, used: dict[str, int],
+               max_corrections: int, options: PlanOptions, first_id: int) -> list[Operation] | None:
+    """Pushes that bring object ``obj_id``, which missed slot ``target_id``, back in (a
+    single-object plan, its operations numbered from ``first_id``); None when none is
+    needed or allowed. ``used`` counts the corrections per object (at most
+    ``max_corrections``)."""
     from nanoasm.planner import plan_assembly
 
-    target = layout.target(op.target)
-    o = belief[op.object]
+    target = layout.target(target_id)
+    o = belief[obj_id]
     if in_slot(target, o, tight(layout)) or used.get(o.id, 0) >= max_corrections:
         return None
     used[o.id] = used.get(o.id, 0) + 1

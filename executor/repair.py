@@ -41,12 +41,13 @@ from nanoasm.world.identify import identify
 
 from .context import RunContext
 from .drift_steps import take_reference
+from .edge_slots import edge_line, edge_pushes, edge_slots
 from .engine import Msg
 from .progress_docs import PROGRESS, ProgressDoc
 from .relocalise import keep_track, taken
 from .scan_steps import locate, scan_window
 from .summary import summary
-from .verdict import check_again
+from .verdict import STATES, check_again, check_slots
 
 #: Substrate surveyed beyond a slot's footprint, nm: a push gone astray leaves its object
 #: and the neighbours it shoved within a few hundred nm.
@@ -169,26 +170,54 @@ def _shrunk(window) -> tuple[float, float, float, float]:
 MAX_WINDOWS = 8
 
 
+def final_check(asm):
+    """The check scans (plan stub, :func:`~.verdict.check_slots`) that set ``asm.slots``:
+    of every slot, or after a round that pushed only particles at the edge of their
+    slots (``asm.recheck``), of those slots alone."""
+    only, asm.recheck = asm.recheck, None
+    asm.slots = yield from check_slots(asm.ctx, asm.layout, summary(asm).assignment, only=only,
+                                       previous=asm.slots)
+    counts = ", ".join(f"{sum(v.state == s for v in asm.slots)} {s}" for s in STATES)
+    yield Msg("event", (f"check scans of the {len(asm.slots)} slot(s): {counts}" if only is None else
+                        f"check scans of the {len(only)} slot(s) pushed in again; of all {len(asm.slots)}: "
+                        f"{counts}",))
+
+
 def repair_round(asm, done: int):
     """A repair round of the assembly ``asm`` (after its check scans, ``done`` operations
-    of its plan run) if slots are not filled, rounds remain and the run pushed something
-    (else the belief is what the full scan showed, which a survey at its pixel size would
-    only repeat): survey them, plan again from what the survey saw; returns the new plan's
-    operations (none: the run is over; a replan with no push checks the slots not filled
-    again, :func:`~.verdict.check_again`)."""
+    of its plan run) if slots are not filled, or filled only near the edge of their
+    tolerance (:mod:`.edge_slots`), rounds remain and the run pushed something (else the
+    belief is what the full scan showed, which a survey at its pixel size would only
+    repeat): survey the slots not filled and plan again from what the survey saw, then
+    push the particles at the edge in; returns the operations (none: the run is over; a
+    replan with no push checks the slots not filled again,
+    :func:`~.verdict.check_again`)."""
     ctx = asm.ctx
     bad = _particle_slots_not_filled(asm.layout, asm.slots)
-    if not bad or not asm.strategy.replans or ctx.ledger.repairs >= asm.options.repair_rounds \
+    edge = edge_slots(asm.layout, asm.slots, ctx)
+    if not (bad or edge) or not asm.strategy.replans or ctx.ledger.repairs >= asm.options.repair_rounds \
             or not ctx.ledger.pushed:               # nothing pushed: the belief is the full scan's
         return []
     ctx.ledger.repairs += 1
     if ctx.ledger.repairs == 1:
         yield Msg("emit", (PROGRESS, ProgressDoc("phase", "repair")))
-    yield Msg("event", (f"repair round {ctx.ledger.repairs}: surveying the {len(bad)} particle slot(s) "
-                        f"not filled",), {"level": "warn"})
-    yield from survey(ctx, bad, asm.slots, asm.plan_options.tip_radius)
-    ops = yield from asm.replan(done, f"repair round {ctx.ledger.repairs}")
-    if not ops:                  # nothing to push: perhaps the last check scans looked amiss
+    ops = []
+    if bad:
+        yield Msg("event", (f"repair round {ctx.ledger.repairs}: surveying the {len(bad)} particle slot(s) "
+                            f"not filled",), {"level": "warn"})
+        yield from survey(ctx, bad, asm.slots, asm.plan_options.tip_radius)
+        ops = yield from asm.replan(done, f"repair round {ctx.ledger.repairs}")
+    held = {(a.target, a.object) for a in summary(asm).assignment}
+    edge = [(t, v) for t, v in edge if (t.id, v.object) in held and all(p.object != v.object for p in ops)]
+    extra = edge_pushes(asm.layout, ctx, edge, asm.plan_options,
+                        max([*asm.course.starts, *(p.id for p in ops)], default=0) + 1)
+    if extra:
+        yield Msg("event", (f"repair round {ctx.ledger.repairs}: " + edge_line(edge, len(extra)),))
+        asm.course.follow(ctx.environment(), extra, extend=True)
+        ctx.moving = {p.object for p in ops} | {p.object for p in extra}
+        asm.recheck = None if bad else {t.id for t, _ in edge}
+        ops += extra
+    if bad and not ops:          # nothing to push: perhaps the last check scans looked amiss
         asm.slots = yield from check_again(ctx, asm.layout, summary(asm).assignment, asm.slots)
     return ops
 

@@ -120,7 +120,8 @@ class ExecOptions:
         goes to another object.
     repair_rounds : int
         With replanning (``full``): rounds of survey and pushes after the check scans
-        while particle slots are not filled and the run pushed something (:mod:`.repair`);
+        while particle slots are not filled, or filled only near the edge of their
+        tolerance (:mod:`.edge_slots`), and the run pushed something (:mod:`.repair`);
         0: none.
     replan_after : float
         With replanning (``full``): an object this far off its planned course after a
@@ -192,7 +193,7 @@ class ExecOptions:
     max_failures: int = param(3, "-", "failed or off-course pushes of one object before it is left",
                               lo=1)
     repair_rounds: int = param(1, "-", "survey-and-push rounds after the check scans while particle "
-                               "slots are not filled", nonnegative=True)
+                               "slots are not filled or only near the edge", nonnegative=True)
     replan_after: float = param(60.0, "nm", "deviation from the planned course that replans (full)",
                                 positive=True)
     lost_radius: float = param(1500.0, "nm", "half-size of the search for a lost object", positive=True)
