@@ -4,7 +4,7 @@ slots the truth fills and its own verdict, one JSON row a seed.
 The counts: references gated out as moved on their own, relocalisations begun and
 failed, pushes that slipped (all, and by kind: :func:`_slips`), objects not found where
 believed; ``edge``: slots the verdict calls filled at a measured error beyond 0.6 of the
-tolerance (:mod:`nanoasm.executor.edge_slots`); ``rms`` and ``worst``: the centre errors
+tolerance (``course.tight``, :mod:`nanoasm.executor.edge_slots`); ``rms`` and ``worst``: the centre errors
 (nm) of the slots the truth fills (:func:`bench_pushes.truth_errors`). Used to compare two
 trees on the same seeds (run it once from each)::
 
@@ -21,8 +21,6 @@ import time
 
 from bench_pushes import truth_errors
 
-#: A filled slot measured beyond this fraction of the position tolerance is at its edge.
-EDGE = 0.6
 #: Row key -> the text its events contain.
 EVENTS = {"moved_on_own": "moved on its own", "relocalising": "relocalising the drift",
           "reloc_failed": "relocalisation failed", "slipped": "slipped", "not_found": "not found"}
@@ -46,11 +44,13 @@ def one(n: int, seed: int) -> dict:
                   plan_options=PlanOptions(seed=seed), subscribers=[keep])
     row = {k: sum(v in x for x in texts) for k, v in EVENTS.items()}
     row.update(_slips(texts))
-    tol = layout.tolerance.position
+    from nanoasm.executor.course import tight
+
+    near = tight(layout).position            # beyond it, a filled slot is at its edge
     truth = truth_errors(layout, out.report.final_objects)
     row.update(n=n, seed=seed, truly_filled=len(out.truly_filled), verdict=len(out.verdict_filled),
                disagree=len(out.disagreements),
-               edge=sum(v.state == "filled" and v.error is not None and v.error > EDGE * tol
+               edge=sum(v.state == "filled" and v.error is not None and v.error > near
                         for v in out.report.slots),
                rms=round(math.sqrt(sum(e * e for e in truth) / len(truth)), 2) if truth else None,
                worst=round(max(truth), 1) if truth else None, pushes=out.report.counts.pushes,

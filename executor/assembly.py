@@ -45,12 +45,13 @@ from .pushing import push
 from .landmarks import Landmarks, moved_area
 from .lever_file import lever_line
 from .references import References
-from .repair import final_check, repair_round
+from .repair import repair_round
 from .reviewed_plan import ReviewedPlan, first_plan
 from .scan_area import ScanArea
 from .checkpoints import checkpoint, restore
 from .strategy import ExecOptions
 from .summary import RunSummary, summary
+from .verdict import final_check
 
 Procedure = Generator[Msg, Any, RunSummary]
 

@@ -47,7 +47,7 @@ from .progress_docs import PROGRESS, ProgressDoc
 from .relocalise import keep_track, taken
 from .scan_steps import locate, scan_window
 from .summary import summary
-from .verdict import STATES, check_again, check_slots
+from .verdict import check_again
 
 #: Substrate surveyed beyond a slot's footprint, nm: a push gone astray leaves its object
 #: and the neighbours it shoved within a few hundred nm.
@@ -168,19 +168,6 @@ def _shrunk(window) -> tuple[float, float, float, float]:
 #: Survey windows one repair round scans at most (a window of 1.5 µm at 10 nm a pixel
 #: takes 150 lines).
 MAX_WINDOWS = 8
-
-
-def final_check(asm):
-    """The check scans (plan stub, :func:`~.verdict.check_slots`) that set ``asm.slots``:
-    of every slot, or after a round that pushed only particles at the edge of their
-    slots (``asm.recheck``), of those slots alone."""
-    only, asm.recheck = asm.recheck, None
-    asm.slots = yield from check_slots(asm.ctx, asm.layout, summary(asm).assignment, only=only,
-                                       previous=asm.slots)
-    counts = ", ".join(f"{sum(v.state == s for v in asm.slots)} {s}" for s in STATES)
-    yield Msg("event", (f"check scans of the {len(asm.slots)} slot(s): {counts}" if only is None else
-                        f"check scans of the {len(only)} slot(s) pushed in again; of all {len(asm.slots)}: "
-                        f"{counts}",))
 
 
 def repair_round(asm, done: int):

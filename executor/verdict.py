@@ -33,8 +33,9 @@ from .engine import Msg
 from .local_scan import particle_before, rod_before
 from .scan_steps import clear_direction, run_pattern
 from .slot_verdict import STATES, SlotVerdict
+from .summary import summary
 
-__all__ = ["STATES", "SlotVerdict", "check_again", "check_slots"]
+__all__ = ["STATES", "SlotVerdict", "check_again", "check_slots", "final_check"]
 
 #: Line beyond a particle slot's reach (nm): substrate to level the line on, not so much
 #: that it runs into the neighbours of a packed array (150 nm apart).
@@ -112,6 +113,19 @@ def _angle_error(a: float, b: float) -> float:
     return min(d, 180.0 - d)
 
 
+def final_check(asm):
+    """The check scans (plan stub, :func:`check_slots`) that set ``asm.slots``:
+    of every slot, or after a round that pushed only particles at the edge of their
+    slots (``asm.recheck``), of those slots alone."""
+    only, asm.recheck = asm.recheck, None
+    asm.slots = yield from check_slots(asm.ctx, asm.layout, summary(asm).assignment, only=only,
+                                       previous=asm.slots)
+    counts = ", ".join(f"{sum(v.state == s for v in asm.slots)} {s}" for s in STATES)
+    yield Msg("event", (f"check scans of the {len(asm.slots)} slot(s): {counts}" if only is None else
+                        f"check scans of the {len(only)} slot(s) pushed in again; of all {len(asm.slots)}: "
+                        f"{counts}",))
+
+
 def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous=None) -> Any:
     """Scan every slot of ``layout`` (plan stub); returns its :class:`SlotVerdict`s in
     the layout's order. ``assignment``: the run's final (target, object) pairs. With
@@ -152,10 +166,9 @@ def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous
                 continue
             # the estimate stood: the slot once more, the creep of the travel here settled
             # and the estimate fresh from that reference
-            out[todo[k]] = yield from _check_slot(ctx, target, obj, layout.tolerance)
-            yield Msg("event", (f"slot {target.id} checked again after a drift reference: "
-                                f"{out[todo[k]].state}" + ("" if out[todo[k]].error is None
-                                                          else f" ({out[todo[k]].error:.1f} nm)"),))
+            second = out[todo[k]] = yield from _check_slot(ctx, target, obj, layout.tolerance)
+            yield Msg("event", (f"slot {target.id} checked again after a drift reference: {second.state}"
+                                + ("" if second.error is None else f" ({second.error:.1f} nm)"),))
         else:
             break
     return tuple(out)

@@ -9,23 +9,15 @@ from dataclasses import replace
 
 from nanoasm.cad.layout import Layout, Tolerance
 from nanoasm.dryrun import dry_run
-from nanoasm.executor.belief import Belief
+from nanoasm.executor.course import tight
 from nanoasm.executor.edge_slots import edge_slots
-from nanoasm.executor.ledger import RunLedger
 from nanoasm.executor.slot_verdict import SlotVerdict
 from nanoasm.executor.strategy import ExecOptions
-from nanoasm.world.environment import EnvObject, Environment
+from nanoasm.world.environment import EnvObject
 from nanoasm.world.families import family_case
 
 from simkit import Events
-
-
-class _Ctx:
-    def __init__(self, objects, lost=(), given_up=()):
-        self.belief = Belief(Environment((0.0, 0.0, 4000.0, 4000.0), tuple(objects), (), "test"), 0.0)
-        self.belief.lost |= set(lost)
-        self.ledger = RunLedger()
-        self.ledger.given_up |= set(given_up)
+from test_repair import FakeCtx
 
 
 def test_only_particle_slots_filled_beyond_the_tight_tolerance_are_at_the_edge():
@@ -42,7 +34,8 @@ def test_only_particle_slots_filled_beyond_the_tight_tolerance_are_at_the_edge()
                 SlotVerdict("s4", "o4", "filled", 19.0),      # its particle given up
                 SlotVerdict("s5", "o5", "filled", 19.9),      # its particle lost
                 SlotVerdict("r", "rod1", "filled", 19.0))     # a rod: its own course's
-    ctx = _Ctx(objects, lost={"o5"}, given_up={"o4"})
+    ctx = FakeCtx(objects, lost={"o5"})
+    ctx.ledger.given_up.add("o4")
     assert [t.id for t, _ in edge_slots(layout, verdicts, ctx)] == ["s1"]
 
 
@@ -63,7 +56,7 @@ def test_a_particle_left_near_the_edge_of_its_slot_is_pushed_in_before_the_verdi
     that; with one, the particle is pushed in, its slot alone checked again, and the slot
     ends within the tight tolerance in the verdict and in truth."""
     scene, layout, oid = _sparse_with_one_off_centre(15.0)
-    tight = 0.6 * layout.tolerance.position
+    near = tight(layout).position                 # 0.6 of the tolerance: 12 nm
     runs = {}
     for rounds in (0, 1):
         events = Events()
@@ -74,12 +67,12 @@ def test_a_particle_left_near_the_edge_of_its_slot_is_pushed_in_before_the_verdi
         runs[rounds] = (out, events.texts, math.dist(truth.at, layout.targets[0].at), mine)
         assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
     _, texts, truth_err, mine = runs[0]
-    assert mine.object == oid and mine.state == "filled" and mine.error > tight
-    assert truth_err > tight and not any("near the edge" in t for t in texts)
+    assert mine.object == oid and mine.state == "filled" and mine.error > near
+    assert truth_err > near and not any("near the edge" in t for t in texts)
     _, texts, truth_err, mine = runs[1]
     assert any(t.startswith("repair round 1: 1 slot(s) filled only near the edge") and "s1" in t
                for t in texts), texts
     assert any(t.startswith("check scans of the 1 slot(s) pushed in again") for t in texts), texts
-    assert mine.object == oid and mine.state == "filled" and mine.error <= tight
-    assert truth_err <= tight
+    assert mine.object == oid and mine.state == "filled" and mine.error <= near
+    assert truth_err <= near
     assert runs[1][0].report.counts.pushes - runs[0][0].report.counts.pushes == 1    # one short push
