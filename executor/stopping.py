@@ -18,8 +18,17 @@ completed. Two Ctrl-C a millisecond apart can reach Python as one call of the ha
 so the second cannot be counted on to repeat a swallowed first (a run in CI went on to
 its end that way).
 
+A signal that arrives while a module is being imported is not raised there: an
+extension module that calls back into Python while it loads (OMPL's, through nanobind)
+cannot carry an exception out of its initialisation, and the process aborts (a CI run:
+Ctrl-C in the first 10 ms of OMPL's import). It is delivered again to the main thread
+every 20 ms until the import has ended, and the engine's next message raises it too
+(:meth:`StopSignals.check`). A program can have the same for the time before a run:
+:func:`interrupt_outside_imports` as its SIGINT handler (the ``nanoasm`` command).
+
 Only the main thread handles signals. SIGINT is taken over only from Python's default
-handler: one ignored (a sweep's worker) or the host program's own is left alone.
+handler (or :func:`interrupt_outside_imports`): one ignored (a sweep's worker) or the
+host program's own is left alone.
 
 A program that ends once a run is stopped by a signal (the ``nanoasm`` command) calls
 :func:`ignore_after_stop`: the handlers are then not restored after such a stop, the
@@ -30,6 +39,7 @@ written log went missing).
 
 from __future__ import annotations
 
+import _thread
 import signal
 import threading
 
@@ -42,6 +52,57 @@ def ignore_after_stop(enabled: bool = True) -> None:
     the handlers from before (for a process that ends then)."""
     global _ignore_after_stop
     _ignore_after_stop = enabled
+
+
+#: How soon a signal that arrived inside an import is delivered again.
+AGAIN_SECONDS = 0.02
+
+_owed: int | None = None      # a signal that arrived inside an import and is not raised yet
+_armed = False                # a delivery of it is on its way
+
+
+def interrupt_outside_imports(signum, frame) -> None:
+    """A SIGINT handler for a program: KeyboardInterrupt, as Python's own handler,
+    except inside an import, where it is raised once the import has ended. A run's
+    engine takes SIGINT over from it as from Python's own, and with it a Ctrl-C owed."""
+    if _importing(frame):
+        _owe(signum)
+        return
+    _paid()
+    raise KeyboardInterrupt
+
+
+def _owe(signum: int) -> None:
+    """Deliver ``signum`` to the main thread again in a moment, through whatever handler
+    handles it then (none if it is ignored), until it is raised."""
+    global _owed, _armed
+    _owed = signum
+    if _armed:
+        return
+    _armed = True
+
+    def deliver():
+        global _armed
+        _armed = False
+        if _owed is not None:
+            _thread.interrupt_main(_owed)
+    timer = threading.Timer(AGAIN_SECONDS, deliver)
+    timer.daemon = True
+    timer.start()
+
+
+def _paid() -> None:
+    global _owed
+    _owed = None
+
+
+def _importing(frame) -> bool:
+    """Whether ``frame`` runs inside an import (a frame of importlib's bootstrap below it)."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib._bootstrap"):
+            return True
+        frame = frame.f_back
+    return False
 
 
 class StopSignals:
@@ -59,8 +120,10 @@ class StopSignals:
     def install(self) -> None:
         if threading.current_thread() is not threading.main_thread():
             return
-        if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        if signal.getsignal(signal.SIGINT) in (signal.default_int_handler, interrupt_outside_imports):
             self._previous[signal.SIGINT] = signal.signal(signal.SIGINT, self._handle)
+            if _owed is not None:               # a Ctrl-C inside an import before the run
+                self.pending = _owed
         self._previous[signal.SIGTERM] = signal.signal(signal.SIGTERM, self._handle)
 
     def _handle(self, signum, frame) -> None:
@@ -70,6 +133,9 @@ class StopSignals:
             return
         if self.pending is None:
             self.pending = signum
+        if _importing(frame):
+            _owe(signum)                        # or check() at the next message, if sooner
+            return
         self._raise(signum)
 
     def check(self) -> None:
@@ -79,6 +145,7 @@ class StopSignals:
             self._raise(self.pending)
 
     def _raise(self, signum: int) -> None:
+        _paid()
         raise KeyboardInterrupt if signum == signal.SIGINT else self.terminated()
 
     def restore(self, by_signal: bool = False) -> None:
@@ -88,6 +155,7 @@ class StopSignals:
         for sig, handler in self._previous.items():
             signal.signal(sig, signal.SIG_IGN if ignore else handler)
         self._previous.clear()
+        _paid()                                 # the run has had it (raise_held for one that ended)
 
     def raise_held(self) -> None:
         """Raise the signal held during a clean-up, or one received while running that

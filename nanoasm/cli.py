@@ -945,8 +945,11 @@ def _main(argv: list[str] | None) -> int:
 
 
 def script() -> None:
-    from nanoasm.executor.stopping import ignore_after_stop
+    from nanoasm.executor.stopping import ignore_after_stop, interrupt_outside_imports
 
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+        # Ctrl-C inside an extension module's import aborts the process (OMPL's, seen)
+        signal.signal(signal.SIGINT, interrupt_outside_imports)
     ignore_after_stop()         # the process ends once a run is stopped: a further Ctrl-C cannot cut its last lines
     sys.exit(main(restore_signals=False))
 

@@ -102,6 +102,63 @@ def test_a_ctrl_c_swallowed_by_library_code_stops_the_run_at_its_next_message():
     assert engine.state is RunState.ABORTED and rec.closed and rec.docs[-1][1].state == "aborted"
 
 
+def test_a_ctrl_c_while_a_module_loads_lets_the_import_end_and_stops_the_run_next(tmp_path, monkeypatch):
+    """An extension module that calls back into Python while it loads cannot carry an
+    exception out of its initialisation (a CI run aborted with a Ctrl-C in OMPL's first
+    import): a signal that arrives inside an import is held until the next message."""
+    (tmp_path / "slow_to_load.py").write_text(
+        "import os, signal, time\n"
+        "os.kill(os.getpid(), signal.SIGINT)\n"
+        "time.sleep(0.05)\n"
+        "LOADED = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    stage, rec = Stage(), Recorder()
+    seen = []
+
+    def importing():
+        yield from away(stage)
+        import slow_to_load
+        seen.append(slow_to_load.LOADED)
+        yield Msg("clock")
+        raise AssertionError("a Ctrl-C held through an import did not stop the run")
+
+    engine = RunEngine(stage, [rec])
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            engine.run(importing())
+    finally:
+        sys.modules.pop("slow_to_load", None)
+    assert seen == [True]
+    assert engine.state is RunState.ABORTED and rec.closed and rec.docs[-1][1].state == "aborted"
+
+
+OMPL_IMPORT_INTERRUPTED = """
+import os, signal, sys, threading, time
+from nanoasm.executor.stopping import interrupt_outside_imports
+signal.signal(signal.SIGINT, interrupt_outside_imports)
+threading.Timer(float(sys.argv[1]), lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+loaded = False
+try:
+    import ompl.base, ompl.geometric
+    loaded = True
+    time.sleep(1.0)
+except KeyboardInterrupt:
+    sys.exit(7 if loaded else 8)
+sys.exit(9)
+"""
+
+
+@pytest.mark.parametrize("delay", [0.002, 0.005, 0.01])
+def test_a_program_interrupted_in_ompls_import_gets_its_ctrl_c_after_it(delay):
+    """Python's own handler raises in OMPL's module initialisation, and the process
+    aborts (SIGABRT: 'terminate called after throwing nanobind::python_error'); with
+    interrupt_outside_imports, the import ends and Ctrl-C is raised after it."""
+    proc = subprocess.run([sys.executable, "-c", OMPL_IMPORT_INTERRUPTED, str(delay)], env=cli_env(),
+                          capture_output=True, text=True, timeout=60,
+                          preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    assert proc.returncode == 7, proc.stderr[-2000:]
+
+
 def test_a_ctrl_c_swallowed_in_a_runs_last_step_is_raised_after_its_clean_up():
     stage, rec = Stage(), Recorder()
 
