@@ -149,11 +149,12 @@ sys.exit(9)
 
 
 @pytest.mark.parametrize("delay", [0.002, 0.005, 0.01])
-def test_a_program_interrupted_in_ompls_import_gets_its_ctrl_c_after_it(delay):
+def test_a_program_interrupted_in_ompls_import_gets_its_ctrl_c_after_it(delay, tmp_path):
     """Python's own handler raises in OMPL's module initialisation, and the process
     aborts (SIGABRT: 'terminate called after throwing nanobind::python_error'); with
     interrupt_outside_imports, the import ends and Ctrl-C is raised after it."""
-    proc = subprocess.run([sys.executable, "-c", OMPL_IMPORT_INTERRUPTED, str(delay)], env=cli_env(),
+    # not in the repository's root, whose nanoasm/ folder is not the installed package
+    proc = subprocess.run([sys.executable, "-c", OMPL_IMPORT_INTERRUPTED, str(delay)], env=cli_env(), cwd=tmp_path,
                           capture_output=True, text=True, timeout=60,
                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     assert proc.returncode == 7, proc.stderr[-2000:]
