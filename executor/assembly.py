@@ -37,7 +37,7 @@ from .belief import Belief
 from .context import RunContext
 from .course import Course
 from .progress_docs import PROGRESS, ProgressDoc
-from .drift_steps import bootstrap, unskewed_obstacles, unsheared_rods
+from .drift_steps import bootstrap, unskewed_obstacles
 from .engine import Msg
 from .estimators import estimator_for
 from .motion_steps import travel_to
@@ -139,7 +139,6 @@ class Assembly:
         yield from self._register(env, row_time, area.resolution)
         # the obstacles too (electrodes: a slot beside one is planned against where it is)
         ctx.belief.obstacles = unskewed_obstacles(env.obstacles, drift, row_time)
-        ctx.belief.objects.update(unsheared_rods(ctx.belief.objects.values(), drift, row_time))
         yield _phase("plan")
         w0 = time.perf_counter()
         plan, line = first_plan(self.replanner, self.reviewed, self.layout, self.ctx.environment(), area.pixel_size)

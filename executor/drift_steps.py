@@ -224,35 +224,6 @@ def unskewed_obstacles(obstacles, drift, row_time) -> tuple:
     return tuple(out)
 
 
-def unsheared_rods(objects, drift, row_time) -> dict:
-    """Rods and wires of the full scan with their shape freed of the rows' drift: each
-    end moved by its own row's drift relative to the centre's (the centre stays as seen:
-    :meth:`RunContext.position` takes its row's drift out). A rod spanning a hundred rows
-    was read lengthened or shortened, and turned, by the drift between its ends' rows (a
-    1258 nm rod of the device family read 1332 nm), which taught the pivot filter a wrong
-    offset. Returns the changed objects by id."""
-    out = {}
-    for o in objects:
-        if not o.elongated:
-            continue
-        c = np.asarray(o.at, float)
-        u = np.array([math.cos(math.radians(o.angle)), math.sin(math.radians(o.angle))])
-
-        def shift(p):
-            return drift.unskew(p, row_time(p[1]) - drift.epoch) - p
-
-        moved = [shift(e) - shift(c) for e in (c - u * o.length / 2, c + u * o.length / 2)]
-        if max(float(np.abs(m).max()) for m in moved) < 1e-6:
-            continue                                        # no drift known (or none)
-        ends = [c + sign * u * o.length / 2 + m for sign, m in zip((-1, 1), moved)]
-        d = ends[1] - ends[0]
-        length = max(float(np.hypot(*d)), o.diameter)
-        turn = math.degrees(math.atan2(float(u[0] * d[1] - u[1] * d[0]), float(u @ d)))
-        mid = (ends[0] + ends[1]) / 2
-        out[o.id] = replace(o, at=(float(mid[0]), float(mid[1])), angle=o.angle + turn, length=length)
-    return out
-
-
 def bootstrap(ctx: RunContext):
     """The drift the full scan's rows carried, from the full scan's own distortion
     (estimators that want it).

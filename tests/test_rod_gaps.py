@@ -14,7 +14,7 @@ from test_planner import filled, replay
 
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Keepout, Layout, Tolerance
-from nanoasm.executor.drift_steps import unsheared_rods, unskewed_obstacles
+from nanoasm.executor.drift_steps import unskewed_obstacles
 from nanoasm.planner import check_plan, plan_assembly
 from nanoasm.planner.freespace import FreeSpace
 from nanoasm.planner.options import PlanOptions
@@ -132,36 +132,3 @@ def test_obstacles_are_unskewed_vertex_by_vertex_with_their_rows_time():
     # the top corner, scanned 200 s after the bottom one, moves 60 nm further: the shear
     # a drifting scan draws is taken out
     assert moved.polygon[2][0] - moved.polygon[1][0] == pytest.approx(0.3 * 200.0)
-
-
-def test_a_rods_ends_are_unskewed_each_by_its_own_rows_drift():
-    """A rod spanning many rows: the drift between its ends' rows drew it longer and
-    turned (a device rod read 1332 nm for 1258); its shape is taken out of that drift,
-    its centre left for the row drift that position() takes out."""
-    rows = (100.0, 2.0, 10.0)
-
-    def row_time(y):
-        return rows[0] + (y / rows[2] + 0.5) * rows[1]
-
-    # truth: a 1000 nm rod along y at x = 2000; the scan saw each end in the row it had
-    # drifted into, moved by v tau of that row
-    seen_ends = []
-    for e in (np.array([2000.0, 1000.0]), np.array([2000.0, 2000.0])):
-        seen = e
-        for _ in range(20):
-            seen = e + _Drifting.v * (row_time(seen[1]) - _Drifting.epoch)
-        seen_ends.append(seen)
-    d = seen_ends[1] - seen_ends[0]
-    centre = (seen_ends[0] + seen_ends[1]) / 2
-    rod = EnvObject("r1", "rod", tuple(centre), 60.0, angle=math.degrees(math.atan2(d[1], d[0])),
-                    length=float(np.hypot(*d)))
-    particle = EnvObject("p1", "particle", (100.0, 100.0), 60.0)
-    assert rod.length > 1050 and abs(rod.angle - 90) > 3            # drawn long and turned
-    out = unsheared_rods((rod, particle), _Drifting(), row_time)
-    assert set(out) == {"r1"}
-    fixed = out["r1"]
-    assert fixed.length == pytest.approx(1000.0, abs=0.5)
-    assert fixed.angle == pytest.approx(90.0, abs=0.05)
-    # the centre as seen (its row's drift is position()'s to take out)
-    assert fixed.at == pytest.approx(tuple(centre), abs=0.5)
-
