@@ -105,7 +105,8 @@ def test_a_ctrl_c_swallowed_by_library_code_stops_the_run_at_its_next_message():
 def test_a_ctrl_c_while_a_module_loads_lets_the_import_end_and_stops_the_run_next(tmp_path, monkeypatch):
     """An extension module that calls back into Python while it loads cannot carry an
     exception out of its initialisation (a CI run aborted with a Ctrl-C in OMPL's first
-    import): a signal that arrives inside an import is held until the next message."""
+    import): a signal that arrives inside an import is raised once the import has ended
+    (delivered again, or at the engine's next message)."""
     (tmp_path / "slow_to_load.py").write_text(
         "import os, signal, time\n"
         "os.kill(os.getpid(), signal.SIGINT)\n"
