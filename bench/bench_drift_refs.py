@@ -17,7 +17,9 @@ the truth; the executor never does):
 
 Plus the drift-jump case: ``allpushed`` with a 300 nm jump injected 150 s after the
 full scan (which takes a second a 10 nm row: 600 s), in the middle of the pushes (the runs
-end 1050-1560 s; ``tests/test_repair.py`` jumps at the same 750 s).
+end 1050-1560 s; ``tests/test_repair.py`` jumps at the same 750 s). ``--jump-family`` and
+``--jump-after`` move it: ``--families '' --jump-family mixed --jump-after 2`` strikes
+as the references are scanned again after the full scan (the bootstrap).
 
     python bench/bench_drift_refs.py                      # 8 families x 10 seeds -> bench/RESULTS_drift_refs.md
     python bench/bench_drift_refs.py --families device --seeds 1-3 --out /tmp/x.md
@@ -48,17 +50,18 @@ CHI2_3SIGMA = 11.829
 JUMP_AFTER = 150.0
 
 
-def one_run(args: tuple[str, int, float, float]) -> dict:
-    """Dry-run one family and seed (``jump`` nm of drift jump :data:`JUMP_AFTER` s after the
-    full scan, 0: none) with ``ExecOptions.trust_after_scan`` at ``trust`` s."""
+def one_run(args: tuple) -> dict:
+    """Dry-run one family and seed (``jump`` nm of drift jump ``after`` s after the full
+    scan, :data:`JUMP_AFTER` if not given; 0 nm: none) with ``ExecOptions.trust_after_scan``
+    at ``trust`` s."""
     from nanoasm.dryrun import dry_run
     from nanoasm.executor.strategy import ExecOptions
     from nanoasm.world.families import family_case
 
-    name, seed, jump, trust = args
+    name, seed, jump, trust, after = (*args, JUMP_AFTER)[:5]
     scene, layout = family_case(name, seed)
     if jump:
-        change = replace(scene.params.drift_change, jump=jump, jump_at=scene.area[0] / 10.0 + JUMP_AFTER)
+        change = replace(scene.params.drift_change, jump=jump, jump_at=scene.area[0] / 10.0 + after)
         scene = replace(scene, params=replace(scene.params, drift_change=change))
     w0 = time.perf_counter()
     out = dry_run(scene, layout, options=ExecOptions(strategy="full", trust_after_scan=trust))
@@ -143,7 +146,8 @@ def family_sweep(doc: str, families, out_name: str, one_run, report, argv: list[
     return 0
 
 
-def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: float) -> str:
+def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: float,
+           jump_case: tuple[str, float] = ("allpushed", JUMP_AFTER)) -> str:
     lines = ["# Drift references: the estimate against the simulated truth", "",
              *provenance("bench_drift_refs.py", argv, len(rows) + len(jump_rows), seconds),
              "Strategy `full`. σ: the estimate's standard deviation along its worst direction after the "
@@ -170,7 +174,7 @@ def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: fl
             f"| {sum(r['filled'] for r in rs)}/{sum(r['slots'] for r in rs)} | {_fmt(_median(rs, 'pushes'))} "
             f"| {sum(r['agree'] for r in rs)}/{len(rs)} |")
     if jump_rows:
-        lines += ["", f"## A 300 nm drift jump {JUMP_AFTER:.0f} s after the full scan (allpushed)", "",
+        lines += ["", f"## A 300 nm drift jump {jump_case[1]:g} s after the full scan ({jump_case[0]})", "",
                   "| seed | jump at s | run ended s | particle slots | truly | particle RMS nm | RMS of estimate nm "
                   "| relocalisation s | verdict agrees |",
                   "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
@@ -194,17 +198,21 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     ap = sweep_args(__doc__, FAMILIES, "RESULTS_drift_refs.md")
     ap.add_argument("--jump-seeds", default="1-10", help="seeds of the drift-jump case ('' for none)")
+    ap.add_argument("--jump-family", default="allpushed", help="family of the drift-jump case")
+    ap.add_argument("--jump-after", type=float, default=JUMP_AFTER,
+                    help=f"s after the full scan's end at which the jump case's drift jumps (default {JUMP_AFTER:g})")
     ap.add_argument("--trust-after-scan", type=float, default=0.0,
                     help="ExecOptions.trust_after_scan of every run, s (default 0, the executor's)")
     a = ap.parse_args(argv)
     seeds = parse_seeds(a.seeds)
     cases = [(f, s, 0.0, a.trust_after_scan) for f in a.families.split(",") if f for s in seeds]
-    jumps = [("allpushed", s, 300.0, a.trust_after_scan) for s in parse_seeds(a.jump_seeds)] if a.jump_seeds else []
+    jumps = ([(a.jump_family, s, 300.0, a.trust_after_scan, a.jump_after) for s in parse_seeds(a.jump_seeds)]
+             if a.jump_seeds else [])
     todo = cases + jumps
     sweep_to_file(todo, one_run, a.workers, Path(a.out),
                   lambda done, secs: report([done[k] for k in range(len(cases)) if k in done],
                                             [done[k] for k in range(len(cases), len(todo)) if k in done],
-                                            argv, secs))
+                                            argv, secs, (a.jump_family, a.jump_after)))
     return 0
 
 

@@ -89,8 +89,7 @@ class Kalman:
         # amplitude's error c ε (the filter's creep term carries ε for every move, the scan's too)
         M = np.vstack([self.scan.thermal_jacobian(tau), self.scan.velocity_jacobian(tau),
                        np.eye(k, PARAMETERS), np.eye(1, PARAMETERS, LAM), np.eye(1, PARAMETERS, EPS) * c])
-        x0 = M @ self.scan.theta
-        P0 = M @ self.scan.cov @ M.T
+        x0, P0 = self.scan.mapped(M)          # a jump since the full scan: the offset carries it
         P0[:2, :2] += np.eye(2) * 4.0
         P0[2:4, 2:4] += np.eye(2) * 1e-6
         revision = self.filter.revision           # a new filter: one revision more, not a count afresh
@@ -129,7 +128,7 @@ class Kalman:
             tau, theta = t - self.epoch, self.scan.theta
             return (self.origin + self.scan.thermal_jacobian(tau) @ theta
                     + (1.0 + theta[EPS]) * self.filter.creep.offset(tau)
-                    + theta[LAM] * self.filter.creep.tau_sensitivity(tau))
+                    + theta[LAM] * self.filter.creep.tau_sensitivity(tau) + self.scan.step(tau))
         return self.origin + np.asarray(self.filter.offset(t).offset, float)
 
     def revision(self) -> object:
@@ -162,16 +161,17 @@ class Kalman:
         """The offset the recorded moves' creep is modelled to cause ``tau`` s after the epoch."""
         return self.filter.creep.offset(tau)
 
-    def full_scan_done(self) -> None:
-        """The full scan has ended: the moves so far are the ones whose creep its rows
+    def full_scan_done(self, t: float | None = None) -> None:
+        """The full scan has ended (at instrument time ``t``, if given: a jump of the drift
+        after it can then be told): the moves so far are the ones whose creep its rows
         carried."""
-        self.scan.scan_ended(self.move_log)
+        self.scan.scan_ended(self.move_log, None if t is None else t - self.epoch)
 
     def unskew(self, at: np.ndarray, tau: float) -> np.ndarray:
         """A full-scan position seen ``tau`` s after the epoch, its row's drift taken out
         (:class:`~nanoasm.executor.scan_drift.ScanDrift`, with ``θ`` as now known)."""
         theta, _ = self.scan_theta()
-        return at - self.scan.jacobian(tau) @ theta - self.scan.creep_at(tau)
+        return at - self.scan.jacobian(tau) @ theta - self.scan.creep_at(tau) - self.scan.step(tau)
 
     def skew_cov(self, tau: float) -> np.ndarray:
         """Covariance (nm²) that :meth:`unskew` carries through ``θ``'s uncertainty."""
@@ -312,6 +312,7 @@ class Kalman:
         rejected in the streak that led here are re-admitted (and returned)."""
         t = self.clamp(t)
         self.filter.forget_offset(t, 1e4)
+        z = np.asarray(z, float) + self.scan.step(tau)    # a window on rows a jump tore the scan at
         self.filter.measure_projected(t, z, np.eye(2), R, label="relocalisation",
                                       static=self.static_rows(np.eye(2), [tau, tau]))
         forgiven = self.trust.relocalised(t)

@@ -64,6 +64,23 @@ def test_a_drift_jump_mid_run_is_caught_by_relocalisation_and_every_slot_still_f
     assert late and max(p.error for p in late) < 15.0
 
 
+def test_a_drift_jump_while_the_full_scan_is_made_is_taken_for_a_jump_not_for_velocity():
+    """mixed seed 1, 300 nm at 250 s, halfway through the 500 s full scan, which it tears:
+    the bootstrap read it as velocity, every relocalisation after found the estimate
+    100-300 nm off again, and no slot was filled (the same at 500 s, as the scan ends:
+    ``tests/test_scan_drift.py`` has both). The references tell the jump, and the rows it
+    struck, from velocity; with it in the model every slot is filled and the verdict is the
+    truth. (A crossed keep-out ring it left made the planner's union fail before.)"""
+    scene, layout = family_case("mixed", 1)
+    events = Events()
+    out = dry_run(_with_jump(scene, 300.0, 250.0), layout, options=ExecOptions(strategy="full"),
+                  subscribers=[events])
+    assert any(t.startswith("the drift jumped by") and "during the full scan" in t for t in events.texts), events.texts
+    assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
+    pts = out.drift
+    assert math.sqrt(sum(p.error ** 2 for p in pts) / len(pts)) <= 10.0, [round(p.error) for p in pts]
+
+
 def _allpushed_jump(seed: int, at: float):
     scene, layout = family_case("allpushed", seed)
     events = Events()

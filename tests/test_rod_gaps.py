@@ -132,3 +132,30 @@ def test_obstacles_are_unskewed_vertex_by_vertex_with_their_rows_time():
     # the top corner, scanned 200 s after the bottom one, moves 60 nm further: the shear
     # a drifting scan draws is taken out
     assert moved.polygon[2][0] - moved.polygon[1][0] == pytest.approx(0.3 * 200.0)
+
+
+class _Torn(_Drifting):
+    """A jump of 600 nm in x taken to count from 50 s after the epoch (rows from y = 245 nm
+    on): the rows after it move back by it."""
+
+    def unskew(self, at, tau):
+        return super().unskew(at, tau) - (np.array([600.0, 0.0]) if tau >= 50.0 else 0.0)
+
+
+def test_an_obstacle_whose_rows_a_torn_scan_moved_across_each_other_stays_a_valid_keep_out():
+    """Where the jump is placed between two references' rows, the rows between move by it or
+    not as they may not have been: a pad's ring then crossed itself, and the planner's union
+    of keep-outs failed (mixed seed 1, 300 nm at 250 s). It becomes the hull of its vertices."""
+    rows = (100.0, 2.0, 10.0)
+
+    def row_time(y):
+        return rows[0] + (y / rows[2] + 0.5) * rows[1]
+
+    pad = EnvObstacle(((0.0, 0.0), (500.0, 0.0), (500.0, 300.0), (500.0, 1000.0), (0.0, 1000.0), (0.0, 200.0)), 30.0)
+    raw = [tuple(_Torn().unskew(np.asarray(p, float), row_time(p[1]) - _Torn.epoch)) for p in pad.polygon]
+    assert not shapely.Polygon(raw).is_valid
+    (moved,) = unskewed_obstacles((pad,), _Torn(), row_time)
+    ring = shapely.Polygon(moved.polygon)
+    assert ring.is_valid and all(ring.buffer(1e-6).contains(shapely.Point(p)) for p in raw)
+    (steady,) = unskewed_obstacles((pad,), _Drifting(), row_time)   # a valid ring is kept as it is
+    assert len(steady.polygon) == len(pad.polygon)

@@ -20,16 +20,20 @@ AMP, TAU = 0.01, 0.1
 
 
 def _bootstrap(truth_eps: float, creep_std: float, seed: int = 3, truth_tau: float = TAU, tau_std: float = 0.0,
-               wrong: dict | None = None):
+               wrong: dict | None = None, jump=(0.0, 0.0), end: float | None = None, jump_from: int = 0,
+               tear: float | None = None):
     """References seen during a 1000 s scan (no moves then) scanned again after long
     travels whose creep is at ``1 + truth_eps`` times the nominal amplitude (and time
     constant ``truth_tau``); returns the model and the true velocity. ``wrong``: reference
     index -> a position error (nm), as if a neighbour had been taken for it; each
-    reference is kept under its index (``measure``'s key)."""
+    reference is kept under its index (``measure``'s key). ``jump``: a jump of the drift
+    (nm) after the scan's end, before reference ``jump_from`` (or, ``tear`` given, during the
+    scan at that time: references on earlier rows carry it); ``end``: the scan's end told
+    to the model (s)."""
     rng = np.random.default_rng(seed)
     v = np.array([0.3, -0.2])
     sd = ScanDrift(0.0, 0.5, AMP, TAU, creep_std=creep_std, tau_std=tau_std)
-    sd.scan_ended([])
+    sd.scan_ended([], end)
     moves, t = [], 1000.0
     for k in range(8):
         step = np.array([6000.0, 4000.0]) * (1 if k % 2 else -1) + rng.normal(0, 500, 2)
@@ -41,6 +45,8 @@ def _bootstrap(truth_eps: float, creep_std: float, seed: int = 3, truth_tau: flo
         tau0 = 100.0 + 110.0 * k
         drift = v * (t - tau0) + true_creep                         # D(t) - D(τ0)
         drift = drift + np.asarray((wrong or {}).get(k, (0.0, 0.0)), float)
+        struck = k >= jump_from if tear is None else tau0 < tear
+        drift = drift + (np.asarray(jump, float) if struck else 0.0)
         for e in np.eye(2):
             z = float(e @ (drift - nominal)) + rng.normal(0, 1.0)   # the nominal creep taken out
             sd.measure(e, z, t, tau0, 1.0, creep1=nominal, lam1=creep_tau_sensitivity(t, times, steps, AMP, TAU),
@@ -203,3 +209,76 @@ def test_a_lines_compensation_carries_the_creep_between_and_its_uncertainty():
     from nanoasm.executor.estimators import NoDrift
     none = NoDrift((0.0, 0.0), 0.0).compensation(100.0, 100.66)
     assert not np.any(none[0]) and not np.any(none[1])
+
+
+def test_a_jump_of_the_drift_after_the_full_scan_is_told_from_velocity():
+    """300 nm just after a 500 s scan was read as 1.1 nm/s of velocity (mixed seed 1),
+    and every relocalisation after found the estimate 200 nm off again. The references'
+    spread over the scan's rows tells a jump (the same for all) from a velocity (in
+    proportion to how long ago each row was): the model with the jump measures it, its
+    Wald statistic stands far past the gate, and once taken in the velocity is right and
+    the jump counts after the scan's end only."""
+    from nanoasm.executor.scan_drift import JUMP_GATE
+
+    J = np.array([120.0, -250.0])
+    clean, v = _bootstrap(0.3, creep_std=0.002, end=1000.0)
+    assert clean.jump_evidence()[2] < 13.8                  # χ² of 2 at 0.999: no jump seen
+    sd, _ = _bootstrap(0.3, creep_std=0.002, end=1000.0, jump=J)
+    assert np.abs(sd.theta[:2] - v).max() > 0.1             # without it: taken for velocity
+    est, cov, stat, since = sd.jump_evidence()
+    assert since == 1000.0 and stat > JUMP_GATE and np.abs(est - J).max() < 3 * math.sqrt(np.linalg.eigvalsh(cov)[-1])
+    before = sd.offset(500.0)
+    sd.take_jump(since)
+    assert np.abs(sd.theta[:2] - v).max() < 0.01 and np.abs(sd.jump - J).max() < 5.0
+    assert sd.step(999.0) == pytest.approx([0.0, 0.0]) and sd.step(1001.0) == pytest.approx(sd.jump)
+    assert np.abs(sd.offset(1001.0) - sd.offset(999.0) - sd.jump).max() < 1.0
+    assert np.abs(sd.offset(500.0) - before).max() > 10.0   # the rows no longer carry it as velocity
+    jac = sd.jacobian(1001.0)                                # the jump's own uncertainty counts after
+    assert not np.allclose(sd.offset_cov(1001.0), jac @ sd.cov @ jac.T, rtol=0.01)
+    jac = sd.jacobian(999.0)
+    np.testing.assert_allclose(sd.offset_cov(999.0), jac @ sd.cov @ jac.T)
+    back = ScanDrift.from_state(sd.state_dict())             # a checkpoint keeps it
+    assert back.stepped and np.allclose(back.jump, sd.jump) and np.allclose(back.theta, sd.theta)
+    # a scan whose end the model was not told has no jump to measure
+    blind, _ = _bootstrap(0.3, creep_std=0.002, jump=J)
+    assert blind.jump_evidence()[2] == 0.0
+
+
+@pytest.mark.parametrize("first", [2, 5])
+def test_a_jump_while_the_references_are_scanned_counts_from_the_first_it_moved(first):
+    """300 nm at 502 s on mixed seed 2, after the first reference had been scanned again:
+    a jump taken to count from the scan's end made that reference an outlier and the
+    velocity 0.9 nm/s off. The jump's time is the one among the references' that fits
+    them best; from there on the model counts it, before it not."""
+    from nanoasm.executor.scan_drift import JUMP_GATE
+
+    J = np.array([-200.0, 180.0])
+    sd, v = _bootstrap(0.3, creep_std=0.002, end=1000.0, jump=J, jump_from=first)
+    times = sorted({t for comps in sd._seen.values() for _, _, t in comps})
+    est, cov, stat, since = sd.jump_evidence()
+    assert stat > JUMP_GATE and since == times[first]
+    sd.take_jump(since)
+    assert np.abs(sd.theta[:2] - v).max() < 0.01 and np.abs(sd.jump - J).max() < 5.0
+    assert sd.step(times[first] - 0.5) == pytest.approx([0.0, 0.0])
+    assert sd.step(times[first]) == pytest.approx(sd.jump)
+    key, chi2, _ = sd.worst()                              # no reference stands out any more
+    from nanoasm.drift import gate_threshold
+    assert chi2 < gate_threshold(2, 0.9999)
+
+
+def test_a_jump_while_the_full_scan_is_made_tears_it_and_is_placed_between_rows():
+    """300 nm at 250 s of a 500 s scan (mixed seed 1) tore the scan: the rows after carry
+    the jump, the references on them are seen again where the scan has them, those on the
+    rows before 300 nm off. The model places the jump halfway between the rows of the last
+    reference before and the first after, measures it, and counts it for every row of the
+    scan after (taken out of their positions) as for every time after the scan."""
+    from nanoasm.executor.scan_drift import JUMP_GATE
+
+    J = np.array([-20.0, 300.0])
+    sd, v = _bootstrap(0.3, creep_std=0.002, end=1000.0, jump=J, tear=600.0)
+    est, cov, stat, since = sd.jump_evidence()
+    assert stat > JUMP_GATE and since == pytest.approx(0.5 * (540.0 + 650.0))   # rows 100 + 110 k
+    sd.take_jump(since)
+    assert np.abs(sd.theta[:2] - v).max() < 0.01 and np.abs(sd.jump - J).max() < 5.0
+    assert sd.step(500.0) == pytest.approx([0.0, 0.0]) and sd.step(700.0) == pytest.approx(sd.jump)
+    assert sd.step(1500.0) == pytest.approx(sd.jump)
