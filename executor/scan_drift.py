@@ -309,6 +309,15 @@ class ScanDrift:
         self.stepped = True
         self._solve()
 
+    def drop_jump(self) -> None:
+        """Take the jump out of the model again (counted from the scan's end if taken again)."""
+        if self.stepped and self.tau_end is not None:
+            self.rows, self.info_j, self.eta_j = self._split(self.tau_end)
+            self.tau_jump = self.tau_end
+        self.stepped = False
+        self.jump = np.zeros(2)
+        self._solve()
+
     def disagreement(self, key) -> float:
         """χ² of reference ``key``'s components against ``θ`` measured by every other
         reference (and the prior): large when it is not what the others say, a neighbour

@@ -1,0 +1,71 @@
+"""The drift estimate at the bootstrap's end when the drift jumps 300 nm during the full
+scan or just after it: offset error (nm) and velocity error (nm/s) against the simulated
+truth, per seed; each run is stopped at its first drift estimate (the bootstrap's), so a
+sweep takes minutes where whole runs whose bootstrap went wrong take hours.
+
+    python bench/jump_bootstrap.py mixed 1-10 2        # 2 s after the full scan's end
+    python bench/jump_bootstrap.py mixed 1-10 -250     # 250 s before it: a torn scan
+
+The full scan takes a second per 10 nm row (mixed: 500 s, allpushed: 600 s). The truth is
+read by the dry-run harness's push log (``nanoasm.dryrun._PushLog``, which holds the
+simulated world), never by the executor; the true velocity is the scene's drift velocity
+plus its steady change at that time. Figures and reading in ``bench/RESULTS_drift_refs.md``.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+
+class _Stop(Exception):
+    pass
+
+
+def main(argv: list[str]) -> int:
+    import nanoasm.dryrun as dryrun
+    from nanoasm.executor.strategy import ExecOptions
+    from nanoasm.world.families import family_case
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from bench_drift_refs import parse_seeds
+
+    family, seeds, after = argv[0], parse_seeds(argv[1]), float(argv[2])
+    got: dict = {}
+    keep = dryrun._PushLog.__call__
+
+    def first_estimate(self, topic, doc):
+        keep(self, topic, doc)
+        if topic == "drift":
+            d = dryrun.as_dict(doc)
+            t = float(d["t"])
+            truth = np.asarray(self.sim.true_offset(t)) - np.asarray(self.sim.true_offset(0.0))
+            got.update(t=t, offset=np.asarray(d["offset"], float) - truth, velocity=np.asarray(d["velocity"], float))
+            raise _Stop
+
+    dryrun._PushLog.__call__ = first_estimate
+    print("| seed | jump at s | estimate at s | offset error nm | velocity error nm/s |")
+    print("| ---: | ---: | ---: | ---: | ---: |")
+    for seed in seeds:
+        scene, layout = family_case(family, seed)
+        change = replace(scene.params.drift_change, jump=300.0, jump_at=scene.area[0] / 10.0 + after)
+        scene = replace(scene, params=replace(scene.params, drift_change=change))
+        got.clear()
+        try:
+            dryrun.dry_run(scene, layout, options=ExecOptions(strategy="full", trust_after_scan=0.0))
+        except _Stop:
+            pass
+        if not got:
+            print(f"| {seed} | {change.jump_at:.0f} | - | no estimate | - |", flush=True)
+            continue
+        v_true = np.asarray(scene.params.drift.velocity) + np.asarray(change.acceleration) * got["t"]
+        print(f"| {seed} | {change.jump_at:.0f} | {got['t']:.0f} | {np.hypot(*got['offset']):.1f} "
+              f"| {np.hypot(*(got['velocity'] - v_true)):.3f} |", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
