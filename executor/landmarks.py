@@ -178,10 +178,6 @@ class Landmarks:
             return True
         return False
 
-    def retire(self, labels) -> None:
-        """The features among ``labels`` were out of place with the drift known right."""
-        self.retired.update(fid for fid in labels if fid in self.features)
-
     def forgive(self, labels) -> None:
         """The misses of ``labels`` were the drift's doing (it jumped), not the features'."""
         for fid in labels:

@@ -35,9 +35,6 @@ from .scan_steps import locate, scan_window
 MASK_MARGIN = 40.0
 #: The widening of a moved object's mask for its uncertainty is at most this, nm.
 MAX_MASK = 300.0
-#: A relocalisation confirmed the estimate when its shift's squared Mahalanobis distance
-#: is at most this: χ² of 2 degrees of freedom at 0.9999.
-CONFIRM_GATE = 18.42
 
 
 def keep_track(ctx: RunContext):
@@ -140,20 +137,10 @@ def relocalise(ctx: RunContext, why: str):
                                         (y1 - y0) / image.pixel_size))
         R = np.eye(2) * (reg.std ** 2 + 1.0) + creep_cov
         old, since, confirmed = est.offset(t_mid), est.trust.streak_start, est.trust.confirmed_at
-        old_cov = est.offset_cov(t_mid)
         forgiven = est.relocalised(t_mid, z, R, tau, ctx.refs)
         new, cov = est.offset(t_mid), est.offset_cov(t_mid)
-        if _confirms(new - old, old_cov + R):
-            # the window put the drift where the estimate had it: the streak's references
-            # are what was off (rows a torn full scan moved, objects moved), not the drift
-            ctx.refs.gated.update(forgiven)
-            marks.retire(forgiven)
-            if forgiven:
-                yield Msg("event", (f"the window confirmed the estimate: {', '.join(forgiven)} stay out of it",),
-                          {"level": "warn"})
-        else:
-            marks.forgive(forgiven)
-        ctx.belief.lost.difference_update(forgiven)      # missed for the drift, or to be searched for again
+        marks.forgive(forgiven)
+        ctx.belief.lost.difference_update(forgiven)      # references missed for the drift's jump
         _correct_beliefs(ctx, new - old, since)
         ctx.ledger.purposes["relocalise"] += t_end - t_start
         ctx.log_drift(t_mid)
@@ -224,16 +211,6 @@ def _unsheared(window, est, new_rows, old_rows):
     inside = (ci >= 0.0) & (ci <= rows - 1.0) & (cj >= 0.0) & (cj <= cols - 1.0)
     height = ndimage.map_coordinates(np.asarray(window.height, float), [ci, cj], order=3, mode="nearest")
     return replace(window, height=height), inside
-
-
-def _confirms(shift: np.ndarray, cov: np.ndarray) -> bool:
-    """Whether a relocalisation that moved the estimate by ``shift`` (nm) confirmed it:
-    within :data:`CONFIRM_GATE` of what the estimate and the window may err by together
-    (``cov``, nm²). Mixed seed 4 with a tear at 250 s: references (c1, c2, o17, o19 among
-    them) failed, were re-admitted by windows that moved the estimate by under 15 nm, and
-    failed again, a relocalisation every 200-400 s for 13000 s."""
-    shift = np.asarray(shift, float)
-    return float(shift @ np.linalg.solve(np.asarray(cov, float) + 1e-9 * np.eye(2), shift)) <= CONFIRM_GATE
 
 
 def _centre(w) -> np.ndarray:

@@ -175,23 +175,3 @@ def test_the_relocalisation_mask_is_each_body_widened_and_costs_the_boxes_only()
     got = _mask(image, bodies)
     assert 0 < got.sum() < got.size
     assert np.array_equal(got, want)
-
-
-def test_a_window_that_confirms_the_estimate_leaves_the_streaks_references_out():
-    """A relocalisation that moves the estimate by no more than it and the window may err
-    by together confirmed it: the references that failed were what was off, not the
-    drift. Mixed seed 4 with a tear at 250 s re-admitted them after every such window, and
-    they failed again: relocalisations every 200-400 s until 13480 s, and a verdict that
-    named two slots filled the truth had empty; with them kept out (features retired) 7
-    relocalisations, the run over at 3300 s, every slot filled and the verdict the truth."""
-    from nanoasm.executor.landmarks import Landmarks
-    from nanoasm.executor.relocalise import CONFIRM_GATE, _confirms
-
-    cov = np.diag([6.0 ** 2 + 2.0, 6.5 ** 2 + 2.0])
-    assert _confirms(np.array([-7.0, 0.0]), cov) and _confirms(np.array([4.0, -6.0]), cov)
-    assert not _confirms(np.array([-25.0, 304.0]), cov)                 # a jump: the drift moved
-    assert not _confirms(np.array([0.0, 6.5 * math.sqrt(CONFIRM_GATE) * 1.05]), np.diag([1e-9, 6.5 ** 2]))
-    marks = Landmarks.__new__(Landmarks)
-    marks.features, marks.retired = {"c1": object(), "c2": object()}, set()
-    marks.retire(["c1", "o17"])                                           # objects are not features
-    assert marks.retired == {"c1"}
