@@ -50,6 +50,13 @@ CHI2_3SIGMA = 11.829
 JUMP_AFTER = 150.0
 
 
+def with_jump(scene, jump: float, after: float):
+    """``scene`` whose drift jumps by ``jump`` nm ``after`` s after its full scan ends (a
+    second a 10 nm row; negative: while it is made)."""
+    change = replace(scene.params.drift_change, jump=jump, jump_at=scene.area[0] / 10.0 + after)
+    return replace(scene, params=replace(scene.params, drift_change=change))
+
+
 def one_run(args: tuple) -> dict:
     """Dry-run one family and seed (``jump`` nm of drift jump ``after`` s after the full
     scan, :data:`JUMP_AFTER` if not given; 0 nm: none) with ``ExecOptions.trust_after_scan``
@@ -61,8 +68,7 @@ def one_run(args: tuple) -> dict:
     name, seed, jump, trust, after = (*args, JUMP_AFTER)[:5]
     scene, layout = family_case(name, seed)
     if jump:
-        change = replace(scene.params.drift_change, jump=jump, jump_at=scene.area[0] / 10.0 + after)
-        scene = replace(scene, params=replace(scene.params, drift_change=change))
+        scene = with_jump(scene, jump, after)
     w0 = time.perf_counter()
     out = dry_run(scene, layout, options=ExecOptions(strategy="full", trust_after_scan=trust))
     wall = time.perf_counter() - w0

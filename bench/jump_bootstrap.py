@@ -8,14 +8,15 @@ sweep takes minutes where whole runs whose bootstrap went wrong take hours.
 
 The full scan takes a second per 10 nm row (mixed: 500 s, allpushed: 600 s). The truth is
 read by the dry-run harness's push log (``nanoasm.dryrun._PushLog``, which holds the
-simulated world), never by the executor; the true velocity is the scene's drift velocity
-plus its steady change at that time. Figures and reading in ``bench/RESULTS_drift_refs.md``.
+simulated world), never by the executor, against the offset at the run's start
+(instrument time 0, the layout frame's epoch); the true velocity is the scene's drift
+velocity plus its steady change at that time. Figures and reading in
+``bench/RESULTS_drift_refs.md``.
 """
 
 from __future__ import annotations
 
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +32,7 @@ def main(argv: list[str]) -> int:
     from nanoasm.world.families import family_case
 
     sys.path.insert(0, str(Path(__file__).parent))
-    from bench_drift_refs import parse_seeds
+    from bench_drift_refs import parse_seeds, with_jump
 
     family, seeds, after = argv[0], parse_seeds(argv[1]), float(argv[2])
     got: dict = {}
@@ -51,8 +52,8 @@ def main(argv: list[str]) -> int:
     print("| ---: | ---: | ---: | ---: | ---: |")
     for seed in seeds:
         scene, layout = family_case(family, seed)
-        change = replace(scene.params.drift_change, jump=300.0, jump_at=scene.area[0] / 10.0 + after)
-        scene = replace(scene, params=replace(scene.params, drift_change=change))
+        scene = with_jump(scene, 300.0, after)
+        change = scene.params.drift_change
         got.clear()
         try:
             dryrun.dry_run(scene, layout, options=ExecOptions(strategy="full", trust_after_scan=0.0))

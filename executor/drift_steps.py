@@ -328,9 +328,7 @@ def _jumped(drift) -> None:
     ones scanned after them did not). Without it a jump is taken for velocity: 300 nm just
     after a 500 s scan read as 1.1 nm/s, and every relocalisation after found the estimate
     200 nm off again (mixed, seeds 1-3)."""
-    scan = getattr(drift, "scan", None)
-    if scan is None:
-        return
+    scan = drift.scan
     _, _, stat, since = scan.jump_evidence()
     if stat > JUMP_GATE:
         scan.take_jump(since)
@@ -340,8 +338,8 @@ def _jumped(drift) -> None:
 
 def _jump_event(drift):
     """Say what jump the bootstrap took into the model, if any."""
-    scan = getattr(drift, "scan", None)
-    if scan is None or not scan.stepped:
+    scan = drift.scan
+    if not scan.stepped:
         return
     jump, since = scan.jump, scan.tau_jump
     std = math.sqrt(max(float(np.linalg.eigvalsh(scan.cov_j[-2:, -2:])[-1]), 0.0))

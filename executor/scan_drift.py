@@ -53,7 +53,7 @@ JUMP_GATE = 36.8
 #: scan's end, or one in the scan, needs two): with two, picking the best of the splits of
 #: four references found a "jump" of 36 ± 7 nm in a run without one (rods seed 10,
 #: statistic 23.7).
-JUMP_AFTER = 3
+JUMP_CARRIERS = 3
 
 
 class ScanDrift:
@@ -79,7 +79,7 @@ class ScanDrift:
         # once it is evident, counting from ``tau_jump`` on
         self.tau_end: float | None = None    # the full scan's end, s after the epoch
         self.tau_jump: float | None = None   # the jump counts from here (s after the epoch)
-        self._seen: dict = {}                # each keyed component's (n, τ1), by key
+        self._seen: dict = {}                # each keyed component's (n, τ0, τ1), by key
         self.info_j = np.zeros((PARAMETERS + 2, PARAMETERS + 2))
         self.eta_j = np.zeros(PARAMETERS + 2)
         self._prior_j = np.zeros((PARAMETERS + 2, PARAMETERS + 2))
@@ -153,9 +153,9 @@ class ScanDrift:
     def _after(self, tau: float) -> bool:
         return self.stepped and self.tau_jump is not None and tau >= self.tau_jump
 
-    def _with_step(self, J: np.ndarray, tau: float) -> np.ndarray:
-        """``∂D(τ)/∂(θ, J)``, (2, 8), from ``∂D(τ)/∂θ``."""
-        return np.hstack([J, np.eye(2) if self._after(tau) else np.zeros((2, 2))])
+    def _with_step(self, jac: np.ndarray, tau: float) -> np.ndarray:
+        """``∂D(τ)/∂(θ, J)``, (2, 8), from ``jac = ∂D(τ)/∂θ``."""
+        return np.hstack([jac, np.eye(2) if self._after(tau) else np.zeros((2, 2))])
 
     def offset_cov(self, tau: float) -> np.ndarray:
         """Covariance (nm²) of :meth:`offset`."""
@@ -273,7 +273,7 @@ class ScanDrift:
         jump then leaves the first ones without it); halfway between two references' rows
         of the full scan (a jump while it was made tears it: the rows after carry it, and
         the references on them are seen where the scan has them). At least
-        :data:`JUMP_AFTER` references carry a jump while they are scanned again, two one at
+        :data:`JUMP_CARRIERS` references carry a jump while they are scanned again, two one at
         the scan's end, and two carry one in the scan and two not. A statistic of 0 when no
         reference measured one."""
         none = np.zeros(2), self._prior_j[PARAMETERS:, PARAMETERS:].copy(), 0.0, self.tau_end
@@ -281,20 +281,20 @@ class ScanDrift:
             return none
         seen = list(self._seen.values())
         after = sorted({t1 for comps in seen for _, _, t1 in comps})[1:]
-        rows = sorted({t0 for comps in seen for _, t0, _ in comps})
+        row_times = sorted({t0 for comps in seen for _, t0, _ in comps})
         best = None
-        for since in [self.tau_end, *after, *(0.5 * (a + b) for a, b in zip(rows, rows[1:]))]:
+        for since in [self.tau_end, *after, *(0.5 * (a + b) for a, b in zip(row_times, row_times[1:]))]:
             carry = sum(any(t0 < since <= t1 for _, t0, t1 in comps) for comps in seen)
-            if carry < (JUMP_AFTER if since > self.tau_end else 2) or (since < self.tau_end and len(seen) - carry < 2):
+            if carry < (JUMP_CARRIERS if since > self.tau_end else 2) or (since < self.tau_end and len(seen) - carry < 2):
                 continue
             rows, info, eta = self._split(since)
+            if not np.any(info[PARAMETERS:, PARAMETERS:]):
+                continue
             cov = np.linalg.inv(np.linalg.inv(self._prior_j) + info)
             x = cov @ eta
             chi2 = sum((z - g @ x) ** 2 / var for comps in rows.values() for g, z, var in comps)
             chi2 += float(x @ np.linalg.solve(self._prior_j, x))
             C = 0.5 * (cov[PARAMETERS:, PARAMETERS:] + cov[PARAMETERS:, PARAMETERS:].T)
-            if not np.any(info[PARAMETERS:, PARAMETERS:]):
-                continue
             J = x[PARAMETERS:]
             if best is None or chi2 < best[0]:
                 best = (chi2, J, C, float(J @ np.linalg.solve(C, J)), since)
