@@ -213,7 +213,7 @@ def test_a_lines_compensation_carries_the_creep_between_and_its_uncertainty():
 
 def test_a_jump_of_the_drift_after_the_full_scan_is_told_from_velocity():
     """300 nm just after a 500 s scan was read as 1.1 nm/s of velocity (mixed seed 1),
-    and every relocalisation after found the estimate 200 nm off again. The references'
+    and relocalisations after it moved the estimate by 90-260 nm again and again. The references'
     spread over the scan's rows tells a jump (the same for all) from a velocity (in
     proportion to how long ago each row was): the model with the jump measures it, its
     Wald statistic stands far past the gate, and once taken in the velocity is right and
