@@ -353,8 +353,7 @@ class ScanDrift:
     def state_dict(self) -> dict:
         return {"epoch": self.epoch, "theta": self.theta.tolist(), "cov": self.cov.tolist(),
                 "creep": list(self.creep), "moves": self.moves.tolist(), "prior": self._prior.tolist(),
-                "info": self.info.tolist(), "eta": self.eta.tolist(), "ended": self.ended,
-                "tau_end": self.tau_end, "info_j": self.info_j.tolist(), "eta_j": self.eta_j.tolist(),
+                "ended": self.ended, "tau_end": self.tau_end, "info_j": self.info_j.tolist(), "eta_j": self.eta_j.tolist(),
                 "stepped": self.stepped, "tau_jump": self.tau_jump}
 
     @classmethod
@@ -376,7 +375,7 @@ class ScanDrift:
         out.moves = np.asarray(state["moves"], float).reshape(-1, 3)
         out._prior = np.asarray(state["prior"], float)
         out._prior_j[:PARAMETERS, :PARAMETERS] = out._prior
-        if "info_j" in state:                    # a checkpoint from before the jump: none
+        if "info_j" in state:                    # else a checkpoint from before the jump: none
             out.info_j, out.eta_j = np.asarray(state["info_j"], float), np.asarray(state["eta_j"], float)
             out.tau_end, out.stepped, out.tau_jump = state["tau_end"], bool(state["stepped"]), state["tau_jump"]
         else:

@@ -110,9 +110,11 @@ def test_a_reference_the_others_contradict_is_found_and_taken_out(k, err):
 def test_a_checkpoint_from_before_the_creep_error_resumes_with_it_zero_and_known():
     sd, _ = _bootstrap(0.3, creep_std=0.002)
     state = sd.state_dict()
-    old = {**state, "theta": state["theta"][:4], "cov": [r[:4] for r in state["cov"][:4]],
-           "prior": [r[:4] for r in state["prior"][:4]], "info": [r[:4] for r in state["info"][:4]],
-           "eta": state["eta"][:4]}
+    jump_keys = ("info_j", "eta_j", "tau_end", "stepped", "tau_jump")     # a checkpoint had none then
+    old = {**{k: v for k, v in state.items() if k not in jump_keys},
+           "theta": state["theta"][:4], "cov": [r[:4] for r in state["cov"][:4]],
+           "prior": [r[:4] for r in state["prior"][:4]], "info": [r[:4] for r in state["info_j"][:4]],
+           "eta": state["eta_j"][:4]}
     back = ScanDrift.from_state(old)
     assert back.theta.shape == (PARAMETERS,) and back.theta[-1] == 0.0
     assert back.cov[-1, -1] < 1e-12
