@@ -56,7 +56,14 @@ def _set(doc, path, value):
         t[last] = value
 
 
-DELETE = object()
+class _Delete:
+    """A key to delete; its repr is stable, so the test ids are the same in every process."""
+
+    def __repr__(self) -> str:
+        return "<deleted>"
+
+
+DELETE = _Delete()
 
 BAD = [
     # unknown keys, with the nearest allowed one

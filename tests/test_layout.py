@@ -77,7 +77,14 @@ def mutate(path: str, value) -> dict:
     return data
 
 
-DELETE = object()
+class _Delete:
+    """A key to delete; its repr is stable, so the test ids are the same in every process."""
+
+    def __repr__(self) -> str:
+        return "<deleted>"
+
+
+DELETE = _Delete()
 
 CASES = [
     # (path, value, key path in message, problem fragment)
