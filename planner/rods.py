@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import heapq
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import shapely
@@ -93,16 +93,42 @@ def push_primitive(rod: Body, end: int, side: int, swing: float, options: PlanOp
     return start, end_pt
 
 
+def capsule_ends(xs, ys, angles, half: float) -> np.ndarray:
+    """End points, shape (n, 2, 2), of core segments of half-length ``half`` (a rod's
+    :func:`_half`) at centres ``(xs, ys)`` and axis angles (degrees)."""
+    xs, ys, th = (np.asarray(v, float).reshape(-1) for v in (xs, ys, angles))
+    c, s = np.cos(np.radians(th)) * half, np.sin(np.radians(th)) * half
+    return np.stack([np.column_stack([xs - c, ys - s]), np.column_stack([xs + c, ys + s])], axis=1)
+
+
+def _cores_of(ends: np.ndarray, half: float) -> np.ndarray:
+    """Shapely cores from :func:`capsule_ends` (points where the core has no length)."""
+    return shapely.points(ends[:, 0]) if half == 0.0 else shapely.linestrings(ends)
+
+
 def capsule_cores(xs, ys, angles, length: float, diameter: float) -> np.ndarray:
     """Core segments (shapely, as :meth:`Body.geometry`) of rods of one size at centres
     ``(xs, ys)`` and axis angles (degrees), vectorised."""
-    xs, ys, th = (np.asarray(v, float).reshape(-1) for v in (xs, ys, angles))
     h = max((length - diameter) / 2, 0.0)
     if h == 0.0:
+        xs, ys = (np.asarray(v, float).reshape(-1) for v in (xs, ys))
         return shapely.points(np.column_stack([xs, ys]))
-    c, s = np.cos(np.radians(th)) * h, np.sin(np.radians(th)) * h
-    ends = np.stack([np.column_stack([xs - c, ys - s]), np.column_stack([xs + c, ys + s])], axis=1)
-    return shapely.linestrings(ends)
+    return shapely.linestrings(capsule_ends(xs, ys, angles, h))
+
+
+def _linear_ends(a: Body, b: Body) -> np.ndarray:
+    """Core ends (:func:`capsule_ends`) of the rod at a, b and poses between (2° and a
+    radius apart), interpolated along the shorter way round the axis angle."""
+    turn = axis_error(a.angle, b.angle)
+    n = max(1, math.ceil(turn / 2.0), math.ceil(math.dist(a.at, b.at) / max(a.radius, 1.0)))
+    d_ang = math.remainder(b.angle - a.angle, 180.0)
+    t = np.linspace(0.0, 1.0, n + 1)
+    return capsule_ends(a.at[0] + t * (b.at[0] - a.at[0]), a.at[1] + t * (b.at[1] - a.at[1]),
+                        a.angle + t * d_ang, _half(a))
+
+
+def _half(rod: Body) -> float:
+    return max((rod.length - rod.diameter) / 2, 0.0)
 
 
 def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str | tuple[str, ...], clearance: float | None = None,
@@ -112,14 +138,8 @@ def swept_free(space: FreeSpace, a: Body, b: Body, ignore: str | tuple[str, ...]
     ``ignore``: the id (or ids) of bodies not to count; ``exempt``: fixed things not to
     count (ones the rod started on, to be pushed off).
     """
-    turn = axis_error(a.angle, b.angle)
-    n = max(1, math.ceil(turn / 2.0), math.ceil(math.dist(a.at, b.at) / max(a.radius, 1.0)))
-    # interpolate along the shorter way round the axis angle
-    d_ang = math.remainder(b.angle - a.angle, 180.0)
-    t = np.linspace(0.0, 1.0, n + 1)
-    cores = capsule_cores(a.at[0] + t * (b.at[0] - a.at[0]), a.at[1] + t * (b.at[1] - a.at[1]),
-                          a.angle + t * d_ang, a.length, a.diameter)
-    return space.all_free(cores, a.radius, ignore if isinstance(ignore, tuple) else (ignore,), exempt, clearance)
+    ids = ignore if isinstance(ignore, tuple) else (ignore,)
+    return space.all_free(_cores_of(_linear_ends(a, b), _half(a)), a.radius, ids, exempt, clearance)
 
 
 def _tip_free(space: FreeSpace, tip: Point, tip_radius: float, ignore: str) -> bool:
@@ -136,6 +156,8 @@ class Macro:
     moves: tuple[tuple[int, int, float], ...]
     tips: tuple[tuple[Point, Point], ...]              # in the frame of the macro's start
     poses: tuple[tuple[float, float, float], ...]      # (x, y, angle) after each push, same frame
+    #: every push's sweep (:func:`_sweep_ends`), one after the other, same frame
+    sweep: np.ndarray = field(compare=False, repr=False, default_factory=lambda: np.empty((0, 2, 2)))
 
     @property
     def size(self) -> int:
@@ -170,23 +192,25 @@ def macro_library(rod: Body, options: PlanOptions, swings: tuple[float, ...], qu
                     seqs.append(((e, side, sw), (-e, side, sw), (e, -side, sw), (-e, -side, sw)))
     out = []
     for seq in seqs:
-        pose, tips, poses = canon, [], []
+        pose, tips, poses, sweeps = canon, [], [], []
         for end, side, sw in seq:
             t0, t1 = push_primitive(pose, end, side, sw, options)
-            pose = simulate_push(pose, t0, t1, options.tip_radius)
+            after = simulate_push(pose, t0, t1, options.tip_radius)
+            sweeps.append(_sweep_ends(pose, after))
+            pose = after
             tips.append((t0, t1))
             poses.append((pose.at[0], pose.at[1], pose.angle))
-        out.append(Macro(seq, tuple(tips), tuple(poses)))
+        out.append(Macro(seq, tuple(tips), tuple(poses), np.concatenate(sweeps)))
     return out
 
 
-def _rotation_sweep(space: FreeSpace, a: Body, b: Body, clearance: float | None,
-                    exempt: frozenset[int]) -> bool:
-    """Swept check of one push: the rod turns about a (nearly) fixed pivot from a to b,
-    poses at most 2° and one rod radius (at the centre) apart, all in one query."""
+def _sweep_ends(a: Body, b: Body) -> np.ndarray:
+    """Core ends (:func:`capsule_ends`) of one push's sweep: the rod turns about a
+    (nearly) fixed pivot from a to b, poses at most 2° and one rod radius (at the centre)
+    apart."""
     dth = math.radians(b.angle - a.angle)
     if abs(dth) < 1e-9:
-        return swept_free(space, a, b, a.id, clearance, exempt)
+        return _linear_ends(a, b)
     # fixed point of the rigid motion a -> b
     c, s = math.cos(dth), math.sin(dth)
     ax, ay = a.at
@@ -201,9 +225,13 @@ def _rotation_sweep(space: FreeSpace, a: Body, b: Body, clearance: float | None,
     t = dth * np.arange(n + 1) / n
     ct, st = np.cos(t), np.sin(t)
     dx, dy = ax - px, ay - py
-    cores = capsule_cores(px + ct * dx - st * dy, py + st * dx + ct * dy, a.angle + np.degrees(t),
-                          a.length, a.diameter)
-    return space.all_free(cores, a.radius, (a.id,), exempt, clearance)
+    return capsule_ends(px + ct * dx - st * dy, py + st * dx + ct * dy, a.angle + np.degrees(t), _half(a))
+
+
+def _rotation_sweep(space: FreeSpace, a: Body, b: Body, clearance: float | None,
+                    exempt: frozenset[int]) -> bool:
+    """Swept check of one push (:func:`_sweep_ends`), all in one query."""
+    return space.all_free(_cores_of(_sweep_ends(a, b), _half(a)), a.radius, (a.id,), exempt, clearance)
 
 
 #: Search expansions one unit of planner budget buys (about a second here: some 2000
@@ -242,18 +270,28 @@ class RodController:
         return self._library[key]
 
     def _realise(self, rod: Body, macro: Macro) -> list[RodPush] | None:
-        """World pushes of a macro from ``rod``, or None if any collides."""
-        out, prev = [], rod
-        for (t0, t1), local in zip(macro.tips, macro.poses):
-            w0, w1 = _place_point(rod, t0), _place_point(rod, t1)
-            after = _place(rod, local)
-            if not _tip_free(self.space, w0, self.options.tip_radius, rod.id):
-                return None
-            if not _rotation_sweep(self.space, prev, after, self.clearance, self.exempt):
-                return None
-            out.append(RodPush((w0, w1), after))
-            prev = after
-        return out
+        """World pushes of a macro from ``rod``, or None if any collides: each push's tip
+        where it is put down, then its sweep. The sweeps are the macro's own, moved
+        rigidly to ``rod`` (the pivot model is invariant under rigid motions), and checked
+        against the entries near them all (:meth:`FreeSpace.nearby`: the same answers
+        as the space's own checks)."""
+        tips = [(_place_point(rod, t0), _place_point(rod, t1)) for t0, t1 in macro.tips]
+        c, s = _unit(rod.angle)
+        x, y = macro.sweep[..., 0], macro.sweep[..., 1]
+        ends = np.stack([rod.at[0] + c * x - s * y, rod.at[1] + s * x + c * y], axis=-1)
+        cores = _cores_of(ends, _half(rod))
+        tip_r = self.options.tip_radius
+        downs_xy = np.array([w0 for w0, _ in tips])
+        downs = shapely.points(downs_xy)
+        every = np.concatenate([ends.reshape(-1, 2), downs_xy])
+        lo, hi = every.min(axis=0), every.max(axis=0)
+        clear = self.space.clearance if self.clearance is None else self.clearance
+        near = self.space.nearby((lo[0], lo[1], hi[0], hi[1]), max(tip_r, rod.radius), max(clear, 0.0))
+        # every tip and every sweep clear, or the macro is not taken (none is tried alone)
+        if not (near.all_free(downs, tip_r, (rod.id,), clearance=0.0)
+                and near.all_free(cores, rod.radius, (rod.id,), self.exempt, self.clearance)):
+            return None
+        return [RodPush(tip, _place(rod, local)) for tip, local in zip(tips, macro.poses)]
 
     # -- goal tests and costs -------------------------------------------------------
     def _done(self, rod: Body, goal: Body, pos_tol: float, ang_tol: float) -> bool:

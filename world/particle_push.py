@@ -35,6 +35,9 @@ class PushOutcome(str, Enum):
 
 
 def _check(name: str, value, *, lo: float | None = None, lo_open: bool = False) -> np.ndarray:
+    if isinstance(value, float):    # one number (the simulator's every step): no array tests
+        if math.isfinite(value) and (lo is None or (value > lo if lo_open else value >= lo)):
+            return np.asarray(value)
     arr = np.asarray(value, dtype=float)
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} must be finite, got {value!r}")

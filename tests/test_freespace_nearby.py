@@ -1,0 +1,77 @@
+"""The rod search's fast checks answer as the free space's own (issue 14, planning time).
+
+:meth:`FreeSpace.nearby` asks the trees once for the entries near a box, and
+:meth:`Nearby.all_free` then tests footprints in the box against those alone; a macro's
+sweep is simulated once in the rod's own frame and moved rigidly to each pose. Both must
+give what the direct checks give, or the search finds other (or no) pushes.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import shapely
+from hypothesis import given, settings, strategies as st
+
+from nanoasm.bodies import Body
+from nanoasm.planner import PlanOptions
+from nanoasm.planner.freespace import FreeSpace
+from nanoasm.planner.rods import _cores_of, _half, _place, _sweep_ends, capsule_cores, macro_library
+
+
+def _space(seed: int, clearance: float) -> FreeSpace:
+    rng = np.random.default_rng(seed)
+    fixed = [(shapely.box(x, y, x + w, y + h), 0.0) for x, y, w, h in
+             zip(rng.uniform(0, 1800, 4), rng.uniform(0, 1800, 4), rng.uniform(20, 300, 4), rng.uniform(20, 300, 4))]
+    fixed.append((shapely.LineString([(100, 1900), (900, 1700)]), 15.0))       # a wire
+    bodies = {f"p{i}": Body(f"p{i}", "particle", (float(x), float(y)), float(d))
+              for i, (x, y, d) in enumerate(zip(rng.uniform(0, 2000, 25), rng.uniform(0, 2000, 25),
+                                                rng.uniform(30, 90, 25)))}
+    bodies["r"] = Body("r", "rod", (1000.0, 1000.0), 40.0, 30.0, 500.0)
+    return FreeSpace((2000.0, 2000.0), fixed, bodies, clearance)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 50), x=st.floats(0, 2000), y=st.floats(0, 2000), angle=st.floats(-180, 180),
+       length=st.floats(40, 900), radius=st.floats(1, 60), clearance=st.sampled_from([None, 0.0, 12.0]),
+       exempt=st.sampled_from([frozenset(), frozenset({0, 2})]), ignore=st.sampled_from([(), ("r",), ("p3", "r")]))
+def test_nearby_answers_as_the_space_does(seed, x, y, angle, length, radius, clearance, exempt, ignore):
+    space = _space(seed, 25.0)
+    t = np.linspace(0.0, 1.0, 7)
+    cores = capsule_cores(x + 60 * t, y - 40 * t, angle + 20 * t, length, 2 * radius)
+    b = shapely.bounds(cores)
+    near = space.nearby((b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()), radius,
+                        space.clearance if clearance is None else clearance)
+    assert near.all_free(cores, radius, ignore, exempt, clearance) == space.all_free(cores, radius, ignore,
+                                                                                     exempt, clearance)
+    for k in range(len(cores)):       # one footprint at a time too
+        assert near.all_free(cores[k:k + 1], radius, ignore, exempt, clearance) == \
+            space.is_free(cores[k], radius, ignore, exempt, clearance)
+
+
+def test_nearby_refuses_a_footprint_beyond_its_reach():
+    space = _space(0, 25.0)
+    near = space.nearby((900.0, 900.0, 1100.0, 1100.0), 10.0, 0.0)
+    with pytest.raises(ValueError, match="beyond the reach"):
+        near.all_free(shapely.points([(1000.0, 1000.0)]), 20.0, clearance=0.0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(x=st.floats(300, 3700), y=st.floats(300, 3700), angle=st.floats(-400, 400), k=st.integers(0, 47))
+def test_a_macros_sweep_moved_to_a_pose_is_the_sweep_made_there(x, y, angle, k):
+    opts = PlanOptions()
+    rod = Body("r", "rod", (x, y), 30.0, angle, 600.0)
+    macros = macro_library(rod, opts, (opts.rod_swing, opts.rod_swing / 2), quads=True)
+    m = macros[k % len(macros)]
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    lx, ly = m.sweep[..., 0], m.sweep[..., 1]
+    moved = np.stack([x + c * lx - s * ly, y + s * lx + c * ly], axis=-1)
+    prev, made = rod, []
+    for local in m.poses:
+        after = _place(rod, local)
+        made.append(_sweep_ends(prev, after))
+        prev = after
+    made = np.concatenate(made)
+    assert moved.shape == made.shape
+    assert np.abs(moved - made).max() < 1e-6
+    assert len(_cores_of(moved, _half(rod))) == len(moved)
