@@ -153,8 +153,7 @@ class FreeSpace:
         (x0, y0, x1, y1): two box queries, after which :meth:`Nearby.all_free` decides as
         :meth:`all_free` does for such footprints, in one distance call a kind."""
         self._index()
-        reach = radius + (self.clearance if clearance is None else clearance)
-        return Nearby(self, bounds, reach, radius, self.clearance if clearance is None else clearance)
+        return Nearby(self, bounds, radius, self.clearance if clearance is None else clearance)
 
     def is_free(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = (),
                 exempt_fixed: frozenset[int] = frozenset(), clearance: float | None = None) -> bool:
@@ -195,16 +194,18 @@ class FreeSpace:
 
 class Nearby:
     """A :class:`FreeSpace`'s entries near a box (:meth:`FreeSpace.nearby`): every entry
-    whose core's envelope comes within ``reach`` plus its radius of the box. A footprint
+    whose core's envelope comes within the footprint's radius, the clearance and the
+    largest entry radius of the box. A footprint
     inside the box can only touch these, so testing it against them alone, with the
     same distances and thresholds as :meth:`FreeSpace.all_free`, gives the same answer:
     a search checking many footprints in one place (a rod's push and its sweep) asks the
     trees once instead of twice a footprint."""
 
-    def __init__(self, space: FreeSpace, bounds: tuple[float, float, float, float], reach: float,
-                 radius: float, clearance: float):
+    def __init__(self, space: FreeSpace, bounds: tuple[float, float, float, float], radius: float,
+                 clearance: float):
         self.area, self.clearance = space.area, space.clearance
         self._radius, self._clear = radius, clearance
+        reach = radius + clearance
         x0, y0, x1, y1 = bounds
 
         def box(m: float) -> shapely.Geometry:

@@ -157,7 +157,7 @@ class Macro:
     tips: tuple[tuple[Point, Point], ...]              # in the frame of the macro's start
     poses: tuple[tuple[float, float, float], ...]      # (x, y, angle) after each push, same frame
     #: every push's sweep (:func:`_sweep_ends`), one after the other, same frame
-    sweep: np.ndarray = field(compare=False, repr=False, default_factory=lambda: np.empty((0, 2, 2)))
+    sweep: np.ndarray = field(compare=False, repr=False)
 
     @property
     def size(self) -> int:

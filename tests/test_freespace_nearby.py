@@ -40,8 +40,7 @@ def test_nearby_answers_as_the_space_does(seed, x, y, angle, length, radius, cle
     t = np.linspace(0.0, 1.0, 7)
     cores = capsule_cores(x + 60 * t, y - 40 * t, angle + 20 * t, length, 2 * radius)
     b = shapely.bounds(cores)
-    near = space.nearby((b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()), radius,
-                        space.clearance if clearance is None else clearance)
+    near = space.nearby((b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()), radius, clearance)
     assert near.all_free(cores, radius, ignore, exempt, clearance) == space.all_free(cores, radius, ignore,
                                                                                      exempt, clearance)
     for k in range(len(cores)):       # one footprint at a time too

@@ -14,6 +14,8 @@ from nanoasm.executor.instrument_file import SCANNER_REQUIRED, DaqConfig, Instru
 from nanoasm.fileio import dumps_toml
 from nanoasm.param import ParamError
 
+from doc_edits import DELETE
+
 EXAMPLE = example_path("instrument_ni.toml")
 
 
@@ -55,15 +57,6 @@ def _set(doc, path, value):
     else:
         t[last] = value
 
-
-class _Delete:
-    """A key to delete; its repr is stable, so the test ids are the same in every process."""
-
-    def __repr__(self) -> str:
-        return "<deleted>"
-
-
-DELETE = _Delete()
 
 BAD = [
     # unknown keys, with the nearest allowed one

@@ -13,6 +13,8 @@ from nanoasm.cad.layout import layout_from_dict, load_layout
 from nanoasm.errors import InputError
 from nanoasm.examples import path as example
 
+from doc_edits import DELETE
+
 
 def base() -> dict:
     return {
@@ -76,15 +78,6 @@ def mutate(path: str, value) -> dict:
         node[keys[-1]] = value
     return data
 
-
-class _Delete:
-    """A key to delete; its repr is stable, so the test ids are the same in every process."""
-
-    def __repr__(self) -> str:
-        return "<deleted>"
-
-
-DELETE = _Delete()
 
 CASES = [
     # (path, value, key path in message, problem fragment)
