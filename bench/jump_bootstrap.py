@@ -5,6 +5,7 @@ sweep takes minutes where whole runs whose bootstrap went wrong take hours.
 
     python bench/jump_bootstrap.py mixed 1-10 2        # 2 s after the full scan's end
     python bench/jump_bootstrap.py mixed 1-10 -250     # 250 s before it: a torn scan
+    python bench/jump_bootstrap.py scale300 1-10 none  # no jump: is one taken anyway?
 
 The full scan takes a second per 10 nm row (mixed: 500 s, allpushed: 600 s). The truth is
 read by the dry-run harness's push log (``nanoasm.dryrun._PushLog``, which holds the
@@ -34,12 +35,15 @@ def main(argv: list[str]) -> int:
     sys.path.insert(0, str(Path(__file__).parent))
     from bench_drift_refs import parse_seeds, with_jump
 
-    family, seeds, after = argv[0], parse_seeds(argv[1]), float(argv[2])
+    family, seeds = argv[0], parse_seeds(argv[1])
+    after = None if argv[2] == "none" else float(argv[2])
     got: dict = {}
     keep = dryrun._PushLog.__call__
 
     def first_estimate(self, topic, doc):
         keep(self, topic, doc)
+        if topic == "event" and "the drift jumped" in str(dryrun.as_dict(doc).get("text", "")):
+            got["jump"] = dryrun.as_dict(doc)["text"]
         if topic == "drift":
             d = dryrun.as_dict(doc)
             t = float(d["t"])
@@ -48,23 +52,26 @@ def main(argv: list[str]) -> int:
             raise _Stop
 
     dryrun._PushLog.__call__ = first_estimate
-    print("| seed | jump at s | estimate at s | offset error nm | velocity error nm/s |")
-    print("| ---: | ---: | ---: | ---: | ---: |")
+    print("| seed | jump at s | estimate at s | offset error nm | velocity error nm/s | jump the bootstrap took |")
+    print("| ---: | ---: | ---: | ---: | ---: | --- |")
     for seed in seeds:
         scene, layout = family_case(family, seed)
-        scene = with_jump(scene, 300.0, after)
+        if after is not None:
+            scene = with_jump(scene, 300.0, after)
         change = scene.params.drift_change
+        at = f"{change.jump_at:.0f}" if change.jump else "none"
         got.clear()
         try:
             dryrun.dry_run(scene, layout, options=ExecOptions(strategy="full", trust_after_scan=0.0))
         except _Stop:
             pass
         if not got:
-            print(f"| {seed} | {change.jump_at:.0f} | - | no estimate | - |", flush=True)
+            print(f"| {seed} | {at} | - | no estimate | - | - |", flush=True)
             continue
         v_true = np.asarray(scene.params.drift.velocity) + np.asarray(change.acceleration) * got["t"]
-        print(f"| {seed} | {change.jump_at:.0f} | {got['t']:.0f} | {np.hypot(*got['offset']):.1f} "
-              f"| {np.hypot(*(got['velocity'] - v_true)):.3f} |", flush=True)
+        took = got.get("jump", "none").split(": taken")[0].replace("the drift jumped by ", "")
+        print(f"| {seed} | {at} | {got['t']:.0f} | {np.hypot(*got['offset']):.1f} "
+              f"| {np.hypot(*(got['velocity'] - v_true)):.3f} | {took} |", flush=True)
     return 0
 
 
