@@ -272,7 +272,7 @@ def test_one_reference_off_before_the_others_is_an_outlier_not_a_jump():
     """scale1000 seed 1: the first reference scanned after a 4000 s scan (in a cluster of
     three, its sighting ± 30 nm) was 110-145 nm off what the seven after it said; a jump
     counted from the second reference's time fitted that, passed the gate at 56, and the
-    run relocalised 30 times on a drift without any jump. One reference before a jump is
+    run relocalised 20 times on a drift without any jump. One reference before a jump is
     a reference the others contradict: no jump is counted from there, and the outlier
     test names it."""
     from nanoasm.executor.scan_drift import JUMP_GATE
