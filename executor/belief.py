@@ -9,6 +9,8 @@ import numpy as np
 
 from nanoasm.world.environment import EnvObject, Environment
 
+from .json_parts import Parts, PartsDict, kept
+
 
 @dataclass
 class Seen:
@@ -74,10 +76,25 @@ class Belief:
 
     def state_dict(self) -> dict:
         """Everything, for resuming a run: :meth:`to_dict` plus the sightings, area and
-        obstacles (JSON types)."""
-        return {**self.to_dict(), "area": list(self.area),
-                "obstacles": [ob.to_dict() for ob in self.obstacles],
-                "seen": {k: {"t": v.t, "cov": np.asarray(v.cov, float).tolist()} for k, v in self.seen.items()}}
+        obstacles (JSON types). Each object's and each sighting's part is the same
+        (:func:`~.json_parts.kept`) from one checkpoint to the next while it stands."""
+        docs = self.__dict__.setdefault("_docs", {})
+        objects = Parts()
+        for oid, o in self.objects.items():
+            had = docs.get(oid)
+            if had is None or had[0] is not o:
+                had = docs[oid] = (o, kept(o.to_dict()))
+            objects.append(had[1])
+        seen = PartsDict()
+        for k, v in self.seen.items():
+            cov = np.asarray(v.cov, float)
+            key = ("seen", k)
+            had = docs.get(key)
+            if had is None or had[0] != (v.t, cov.tobytes()):
+                had = docs[key] = ((v.t, cov.tobytes()), kept({"t": v.t, "cov": cov.tolist()}))
+            seen[k] = had[1]
+        return PartsDict(objects=objects, lost=sorted(self.lost), touched=sorted(self.touched),
+                         area=list(self.area), obstacles=[ob.to_dict() for ob in self.obstacles], seen=seen)
 
     @classmethod
     def from_state(cls, state: dict) -> Belief:

@@ -18,6 +18,7 @@ from .belief import Belief
 from .context import RunContext
 from .course import Course
 from .estimators import estimator_from_state
+from .json_parts import PartsDict, kept
 from .pivots import Pivots
 from .landmarks import Landmarks
 from .ledger import RunLedger
@@ -33,17 +34,28 @@ def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str
     estimate (``drift``). The ledger's figures are at the top level (``counts``,
     ``times``, ...), where a reader of a log finds them."""
     ctx, rp = asm.ctx, asm.replanner
-    return {
+    return PartsDict({
         "format": FORMAT, "t": t, "saved_at": time.time(), "strategy": asm.strategy.value,
-        "plan": None if rp.plan is None else rp.plan.to_dict(),
-        "base": None if rp.base is None else rp.base.to_dict(),
+        "plan": _kept_doc(asm, "plan", rp.plan), "base": _kept_doc(asm, "base", rp.base),
         "remaining": [o.to_dict() for o in remaining], "done": done, "corrections": dict(corrections),
         "belief": ctx.belief.state_dict(), "estimator": ctx.drift.state_dict(),
         "references": ctx.refs.state_dict(), "course": asm.course.state_dict(),
         "landmarks": ctx.landmarks.state_dict(), "line_timing": ctx.timing.state_dict(),
         "pivots": ctx.pivots.state_dict(), "last_after": ctx.last_after,
         "moving": sorted(ctx.moving), **ctx.ledger.state_dict(),
-        "drift": ctx.ledger.drift[-1] if ctx.ledger.drift else None}
+        "drift": ctx.ledger.drift[-1] if ctx.ledger.drift else None})
+
+
+def _kept_doc(asm, name: str, part) -> dict | None:
+    """``part.to_dict()`` (a plan or environment, which never changes: a replan makes a
+    new one), the same kept dict (:func:`~.json_parts.kept`) while ``part`` stands."""
+    if part is None:
+        return None
+    docs = asm.__dict__.setdefault("_checkpoint_docs", {})
+    had = docs.get(name)
+    if had is None or had[0] is not part:
+        had = docs[name] = (part, kept(part.to_dict()))
+    return had[1]
 
 
 def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]]:

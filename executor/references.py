@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import shapely
 
+from .json_parts import Parts, PartsDict, kept
+
 #: Objects whose footprint comes this close (nm) to a push's swept area are quarantined:
 #: a particle's path scatters by a few degrees (70 nm over 2 µm) and a shoved neighbour
 #: passes its push on.
@@ -75,6 +77,7 @@ class References:
     quarantine: dict[str, str] = field(default_factory=dict)
     pushes: list[SweptArea] = field(default_factory=list)
     notes: dict[str, str] = field(default_factory=dict, repr=False)     # why each moved (not kept)
+    _docs: dict = field(default_factory=dict, repr=False, compare=False)  # state_dict's parts
 
     @classmethod
     def of_scan(cls, objects, seen) -> References:
@@ -98,9 +101,17 @@ class References:
         (returns them)."""
         self.pushes = [*self.pushes, area][-KEPT_PUSHES:]
         g = area.geometry()
+        x0, y0, x1, y1 = g.bounds
         hit = []
         for oid, o in belief.objects.items():
             if oid == area.obj or oid in belief.lost or oid in self.gated or oid not in self.first_seen:
+                continue
+            # the core lies within half its length of its centre: beyond the box by more
+            # than that and the reach, it is out of reach (a 1000-object run: a shapely
+            # distance to every object after every push, 7 s of its compute)
+            far = QUARANTINE_REACH + o.radius + 0.5 * (o.length or 0.0)
+            x, y = o.at
+            if x < x0 - far or x > x1 + far or y < y0 - far or y > y1 + far:
                 continue
             if shapely.distance(g, o.geometry()) - o.radius < QUARANTINE_REACH:
                 if oid not in self.quarantine:
@@ -138,9 +149,26 @@ class References:
 
     # -- checkpoints ------------------------------------------------------------------------
     def state_dict(self) -> dict:
-        return {"raw": sorted(self.raw), "no_reference": sorted(self.gated),
-                "first_seen": {k: [float(a[0]), float(a[1]), float(ts)] for k, (a, ts) in self.first_seen.items()},
-                "quarantine": dict(self.quarantine), "pushes": [a.to_list() for a in self.pushes]}
+        """For a checkpoint (JSON types); each first sighting's and swept area's part is the
+        same (:func:`~.json_parts.kept`) from one checkpoint to the next while it stands."""
+        docs = self._docs
+        first = PartsDict()
+        for k, (a, ts) in self.first_seen.items():
+            v = [float(a[0]), float(a[1]), float(ts)]
+            had = docs.get(k)
+            if had is None or had != v:
+                had = docs[k] = kept(v)
+            first[k] = had
+        pushes = Parts()
+        for a in self.pushes:
+            had = docs.get(id(a))
+            if had is None or had[0] is not a:
+                had = docs[id(a)] = (a, kept(a.to_list()))
+            pushes.append(had[1])
+        if len(docs) > 4 * (len(self.first_seen) + KEPT_PUSHES):     # swept areas long gone
+            self._docs = {k: v for k, v in docs.items() if isinstance(k, str)}
+        return PartsDict(raw=sorted(self.raw), no_reference=sorted(self.gated), first_seen=first,
+                         quarantine=dict(self.quarantine), pushes=pushes)
 
     @classmethod
     def from_state(cls, state: dict) -> References:

@@ -12,9 +12,8 @@ leaves a readable prefix (:func:`nanoasm.executor.logread.read_log` reads it). P
 are in nm in the layout frame (``frame_id`` ``"layout"``) unless a topic says
 ``scanner``; Foxglove's 3-D panel shows 1 nm as 1 m.
 
-Only what the executor knows goes into the log; the harness that runs it may add
-channels of its own (:meth:`RunLog.add_channel`, :meth:`RunLog.write`).
-"""
+Only what the executor knows goes into the log; the harness may add channels of its own
+(:meth:`RunLog.add_channel`, :meth:`RunLog.write`). JSON is :mod:`.json_parts`'s."""
 
 from __future__ import annotations
 
@@ -30,6 +29,7 @@ import numpy as np
 
 from .documents import (CHANNELS, CHECKPOINT, DAC, ENVIRONMENT, EVENT, FAILED_VERDICTS, FULL_SCAN, PLAN, PUSH,
                         RESULT, SCAN_LINE, STOP, Document, as_dict)
+from . import json_parts
 from .scan_attachment import FULL_SCAN_ATTACHMENT, full_scan_bytes
 from .foxglove_scenes import (COLOURS, believed, bodies_scene, grid, layout_scene, log_line, nanoseconds,
                               paths_scene, scan_line_scene, timestamp)
@@ -98,7 +98,7 @@ def _rounded(doc: Any) -> Any:
 
 def to_json(doc: Any) -> bytes:
     """The JSON bytes of a document, as logged (NaN kept, so nothing is lost)."""
-    return json.dumps(doc, default=_plain, separators=(",", ":")).encode("utf-8")
+    return json_parts.dumps(doc, _plain).encode("utf-8")     # json.dumps's bytes, parts kept encoded once
 
 
 def _json_schema(name: str, description: str, required: tuple[str, ...] = ()) -> dict:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings, strategies as st
 
 from nanoasm.bodies import Body
 from nanoasm.executor.belief import Belief
@@ -64,6 +65,26 @@ def test_a_push_quarantines_what_lies_within_reach_of_its_sweep_and_is_blamed_fo
     assert refs.blame("tip", belief["tip"].at, since=60.0) is None      # pushes before its sighting
     back = References.from_state(refs.state_dict())
     assert back.quarantine == refs.quarantine and back.pushes == refs.pushes
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 4000), st.floats(0, 4000), st.booleans(), st.floats(0, 180)),
+                min_size=1, max_size=25),
+       st.floats(200, 3800), st.floats(200, 3800), st.floats(-800, 800), st.floats(-800, 800))
+def test_the_quarantine_hits_what_a_distance_to_every_object_would(objs, x, y, dx, dy):
+    """The box test before the distance leaves out only what lies beyond reach: the same
+    objects as the shapely distance to every one of them (rods reaching half their length)."""
+    import shapely
+
+    bodies = [EnvObject(f"o{k}", "rod", (ox, oy), 60.0, a, 700.0) if rod else _p(f"o{k}", ox, oy)
+              for k, (ox, oy, rod, a) in enumerate(objs)]
+    belief = _belief(_p("pushed", x, y), *bodies)
+    refs = References.of_scan(belief.objects.values(), belief.seen)
+    end = Body("pushed", "particle", (x + dx, y + dy), 90.0)
+    area = swept_area("pushed", 5.0, [(x, y), (x + dx, y + dy)], [belief["pushed"], end], tip_radius=10.0)
+    g = area.geometry()
+    want = {b.id for b in bodies if shapely.distance(g, b.geometry()) - b.radius < QUARANTINE_REACH}
+    assert set(refs.pushed_near(area, belief)) == want
 
 
 def test_a_rods_sweep_covers_its_turn():
