@@ -42,10 +42,10 @@ def main(argv: list[str]) -> int:
 
     def first_estimate(self, topic, doc):
         keep(self, topic, doc)
-        if topic == "event" and "the drift jumped" in str(dryrun.as_dict(doc).get("text", "")):
-            got["jump"] = dryrun.as_dict(doc)["text"]
+        d = dryrun.as_dict(doc)
+        if topic == "event" and "the drift jumped" in str(d.get("text", "")):
+            got["jump"] = d["text"]
         if topic == "drift":
-            d = dryrun.as_dict(doc)
             t = float(d["t"])
             truth = np.asarray(self.sim.true_offset(t)) - np.asarray(self.sim.true_offset(0.0))
             got.update(t=t, offset=np.asarray(d["offset"], float) - truth, velocity=np.asarray(d["velocity"], float))

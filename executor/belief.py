@@ -9,7 +9,7 @@ import numpy as np
 
 from nanoasm.world.environment import EnvObject, Environment
 
-from .json_parts import Parts, PartsDict, kept
+from .json_parts import PartCache, Parts, PartsDict
 
 
 @dataclass
@@ -34,6 +34,7 @@ class Belief:
         self.seen: dict[str, Seen] = {o.id: Seen(t0, np.eye(2) * cov0) for o in env.objects}
         self.touched: set[str] = set()
         self.lost: set[str] = set()
+        self._object_parts, self._seen_parts = PartCache(), PartCache()   # state_dict's (json_parts)
 
     def __getitem__(self, object_id: str) -> EnvObject:
         return self.objects[object_id]
@@ -78,21 +79,13 @@ class Belief:
         """Everything, for resuming a run: :meth:`to_dict` plus the sightings, area and
         obstacles (JSON types). Each object's and each sighting's part is the same
         (:func:`~.json_parts.kept`) from one checkpoint to the next while it stands."""
-        docs = self.__dict__.setdefault("_docs", {})
-        objects = Parts()
-        for oid, o in self.objects.items():
-            had = docs.get(oid)
-            if had is None or had[0] is not o:
-                had = docs[oid] = (o, kept(o.to_dict()))
-            objects.append(had[1])
-        seen = PartsDict()
+        objects = Parts(self._object_parts.parts(self.objects.items(), lambda o: o.to_dict()))
+        sights = []
         for k, v in self.seen.items():
             cov = np.asarray(v.cov, float)
-            key = ("seen", k)
-            had = docs.get(key)
-            if had is None or had[0] != (v.t, cov.tobytes()):
-                had = docs[key] = ((v.t, cov.tobytes()), kept({"t": v.t, "cov": cov.tolist()}))
-            seen[k] = had[1]
+            sights.append((k, (v.t, cov.shape, cov.tobytes())))
+        seen = PartsDict(zip(self.seen, self._seen_parts.parts(
+            sights, lambda s: {"t": s[0], "cov": np.frombuffer(s[2]).reshape(s[1]).tolist()})))
         return PartsDict(objects=objects, lost=sorted(self.lost), touched=sorted(self.touched),
                          area=list(self.area), obstacles=[ob.to_dict() for ob in self.obstacles], seen=seen)
 

@@ -18,7 +18,7 @@ from .belief import Belief
 from .context import RunContext
 from .course import Course
 from .estimators import estimator_from_state
-from .json_parts import PartsDict, kept
+from .json_parts import PartCache, PartsDict
 from .pivots import Pivots
 from .landmarks import Landmarks
 from .ledger import RunLedger
@@ -34,9 +34,10 @@ def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str
     estimate (``drift``). The ledger's figures are at the top level (``counts``,
     ``times``, ...), where a reader of a log finds them."""
     ctx, rp = asm.ctx, asm.replanner
+    plan, base = _plan_parts(rp.plan, rp.base)
     return PartsDict({
         "format": FORMAT, "t": t, "saved_at": time.time(), "strategy": asm.strategy.value,
-        "plan": _kept_doc(asm, "plan", rp.plan), "base": _kept_doc(asm, "base", rp.base),
+        "plan": plan, "base": base,
         "remaining": [o.to_dict() for o in remaining], "done": done, "corrections": dict(corrections),
         "belief": ctx.belief.state_dict(), "estimator": ctx.drift.state_dict(),
         "references": ctx.refs.state_dict(), "course": asm.course.state_dict(),
@@ -46,16 +47,16 @@ def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str
         "drift": ctx.ledger.drift[-1] if ctx.ledger.drift else None})
 
 
-def _kept_doc(asm, name: str, part) -> dict | None:
-    """``part.to_dict()`` (a plan or environment, which never changes: a replan makes a
-    new one), the same kept dict (:func:`~.json_parts.kept`) while ``part`` stands."""
-    if part is None:
-        return None
-    docs = asm.__dict__.setdefault("_checkpoint_docs", {})
-    had = docs.get(name)
-    if had is None or had[0] is not part:
-        had = docs[name] = (part, kept(part.to_dict()))
-    return had[1]
+#: The plan's and base environment's kept parts: neither changes (a replan makes new ones).
+_PLAN_PARTS = PartCache()
+
+
+def _plan_parts(plan, base) -> tuple:
+    """``plan.to_dict()`` and ``base.to_dict()`` (None for None), each the same kept part
+    (:mod:`.json_parts`) while it stands."""
+    items = [(name, part) for name, part in (("plan", plan), ("base", base)) if part is not None]
+    made = dict(zip((name for name, _ in items), _PLAN_PARTS.parts(items, lambda p: p.to_dict())))
+    return made.get("plan"), made.get("base")
 
 
 def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]]:

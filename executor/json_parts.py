@@ -4,26 +4,35 @@ A checkpoint holds the executor's whole state after every push: at 1000 objects 
 600 kB of JSON, most of it what the checkpoint before held too (the believed objects not
 seen since, their sightings, the swept areas of the last pushes, the replanner's base
 environment), and encoding it anew took 13 ms a push. The state's owners hand such a
-part out as the same object for as long as it stands and mark it with :func:`kept`; the
+part out as the same :class:`Kept` dict or :class:`KeptList` for as long as its source
+stands (:class:`PartCache` keeps them), and the part carries its JSON once encoded; the
 containers on the way to kept parts are :class:`Parts` (a list) and :class:`PartsDict`
 (a dict with str keys), which :func:`dumps` encodes item by item. Anything else is
 ``json.dumps``'s, and so are the bytes of the whole: a document without such parts is
 encoded exactly as before.
 
-A kept part must never change after it was marked: its JSON is the one it had then.
+A kept part must never change: its JSON is the one it had when first encoded.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any
 
-#: Kept parts remembered at most (then forgotten at once, and each encoded again when
-#: it comes next).
-KEPT_MAX = 50_000
 _SEP = (",", ":")
-_kept: dict[int, list] = {}        # id -> [the part (held, so its id stays its own), its JSON or None]
+
+
+class Kept(dict):
+    """A dict that never changes, carrying its JSON once encoded."""
+
+    __slots__ = ("json",)
+
+
+class KeptList(list):
+    """A list that never changes, carrying its JSON once encoded."""
+
+    __slots__ = ("json",)
 
 
 class Parts(list):
@@ -34,29 +43,42 @@ class PartsDict(dict):
     """A dict (str keys) some of whose values are kept parts, or containers of them."""
 
 
-def kept(part: Any) -> Any:
-    """Mark ``part`` (a dict or list that is never changed from now on) to be encoded
-    once; returns it."""
-    if id(part) not in _kept:
-        if len(_kept) >= KEPT_MAX:
-            _kept.clear()
-        _kept[id(part)] = [part, None]
-    return part
+def kept(part: dict | list) -> Kept | KeptList:
+    """``part`` (a dict or a list, never changed from now on) as a kept part."""
+    out = Kept(part) if isinstance(part, dict) else KeptList(part)
+    out.json = None
+    return out
+
+
+class PartCache:
+    """The kept part made of each source, by key, for as long as the source stands: the
+    same object (``is``), or an equal tuple of values."""
+
+    def __init__(self) -> None:
+        self._parts: dict[Any, tuple[Any, Any]] = {}
+
+    def parts(self, items: Iterable[tuple[Any, Any]], make: Callable[[Any], dict | list]) -> list:
+        """The parts of ``items`` (``(key, source)``), in order: kept as before where the
+        source stands, else ``kept(make(source))``. Keys not among ``items`` are forgotten."""
+        old, new, out = self._parts, {}, []
+        for key, source in items:
+            had = old.get(key)
+            if had is None or not (had[0] is source or (type(source) is tuple and had[0] == source)):
+                had = (source, kept(make(source)))
+            new[key] = had
+            out.append(had[1])
+        self._parts = new
+        return out
 
 
 def dumps(doc: Any, default: Callable[[Any], Any] | None = None) -> str:
     """``json.dumps(doc, separators=(",", ":"), default=default)``, kept parts encoded once."""
-    entry = _kept.get(id(doc))
-    if entry is not None and entry[0] is doc:
-        if entry[1] is None:
-            entry[1] = _encode(doc, default)
-        return entry[1]
-    return _encode(doc, default)
-
-
-def _encode(v: Any, default) -> str:
-    if isinstance(v, Parts):
-        return "[" + ",".join(dumps(x, default) for x in v) + "]"
-    if isinstance(v, PartsDict):
-        return "{" + ",".join(json.dumps(str(k)) + ":" + dumps(x, default) for k, x in v.items()) + "}"
-    return json.dumps(v, separators=_SEP, default=default)
+    if isinstance(doc, (Kept, KeptList)):
+        if doc.json is None:
+            doc.json = json.dumps(doc, separators=_SEP, default=default)
+        return doc.json
+    if isinstance(doc, Parts):
+        return "[" + ",".join(dumps(x, default) for x in doc) + "]"
+    if isinstance(doc, PartsDict):
+        return "{" + ",".join(json.dumps(str(k)) + ":" + dumps(x, default) for k, x in doc.items()) + "}"
+    return json.dumps(doc, separators=_SEP, default=default)

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import shapely
 
-from .json_parts import Parts, PartsDict, kept
+from .json_parts import PartCache, Parts, PartsDict
 
 #: Objects whose footprint comes this close (nm) to a push's swept area are quarantined:
 #: a particle's path scatters by a few degrees (70 nm over 2 µm) and a shoved neighbour
@@ -77,7 +77,8 @@ class References:
     quarantine: dict[str, str] = field(default_factory=dict)
     pushes: list[SweptArea] = field(default_factory=list)
     notes: dict[str, str] = field(default_factory=dict, repr=False)     # why each moved (not kept)
-    _docs: dict = field(default_factory=dict, repr=False, compare=False)  # state_dict's parts
+    _first_parts: PartCache = field(default_factory=PartCache, repr=False, compare=False)  # state_dict's
+    _push_parts: PartCache = field(default_factory=PartCache, repr=False, compare=False)
 
     @classmethod
     def of_scan(cls, objects, seen) -> References:
@@ -151,22 +152,9 @@ class References:
     def state_dict(self) -> dict:
         """For a checkpoint (JSON types); each first sighting's and swept area's part is the
         same (:func:`~.json_parts.kept`) from one checkpoint to the next while it stands."""
-        docs = self._docs
-        first = PartsDict()
-        for k, (a, ts) in self.first_seen.items():
-            v = [float(a[0]), float(a[1]), float(ts)]
-            had = docs.get(k)
-            if had is None or had != v:
-                had = docs[k] = kept(v)
-            first[k] = had
-        pushes = Parts()
-        for a in self.pushes:
-            had = docs.get(id(a))
-            if had is None or had[0] is not a:
-                had = docs[id(a)] = (a, kept(a.to_list()))
-            pushes.append(had[1])
-        if len(docs) > 4 * (len(self.first_seen) + KEPT_PUSHES):     # swept areas long gone
-            self._docs = {k: v for k, v in docs.items() if isinstance(k, str)}
+        first = PartsDict(zip(self.first_seen, self._first_parts.parts(
+            ((k, (float(a[0]), float(a[1]), float(ts))) for k, (a, ts) in self.first_seen.items()), list)))
+        pushes = Parts(self._push_parts.parts(((id(a), a) for a in self.pushes), SweptArea.to_list))
         return PartsDict(raw=sorted(self.raw), no_reference=sorted(self.gated), first_seen=first,
                          quarantine=dict(self.quarantine), pushes=pushes)
 

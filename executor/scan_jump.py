@@ -49,8 +49,11 @@ def evidence(sd) -> tuple[np.ndarray, np.ndarray, float, float]:
         chi2 = sum((z - g @ x) ** 2 / var for comps in rows.values() for g, z, var in comps)
         chi2 += float(x @ np.linalg.solve(sd._prior_j, x))
         if best is None or chi2 < best[0]:
-            best = (chi2, J, C, min(stat, _without_any_one(sd, rows, info, eta)), since)
-    return none if best is None else best[1:]
+            best = (chi2, J, C, stat, since, rows, info, eta)
+    if best is None:
+        return none
+    _, J, C, stat, since, rows, info, eta = best
+    return J, C, min(stat, _without_any_one(sd, rows, info, eta)), since
 
 
 def _jump_fit(sd, info: np.ndarray, eta: np.ndarray):

@@ -8,8 +8,7 @@ import json
 import numpy as np
 from hypothesis import given, settings, strategies as st
 
-from nanoasm.executor import json_parts
-from nanoasm.executor.json_parts import Parts, PartsDict, dumps, kept
+from nanoasm.executor.json_parts import PartCache, Parts, PartsDict, dumps, kept
 from nanoasm.executor.runlog import _plain, to_json
 
 SEP = (",", ":")
@@ -46,9 +45,26 @@ def test_a_kept_part_is_encoded_once_and_numpy_goes_through_the_default():
     doc = PartsDict(a=Parts([part, part]), b=[1, 2])
     want = json.dumps(doc, separators=SEP, default=_plain)
     assert to_json(doc) == want.encode()
-    assert json_parts._kept[id(part)][1] == json.dumps(part, separators=SEP, default=_plain)
-    json_parts._kept[id(part)][1] = '"stale"'     # what a changed kept part would log: it is never re-read
+    assert part.json == json.dumps(part, separators=SEP, default=_plain)
+    part.json = '"stale"'                         # what a changed kept part would log: it is never re-read
     assert to_json(doc).count(b'"stale"') == 2
+
+
+def test_a_part_stands_while_its_source_does_and_unused_keys_are_forgotten():
+    cache, made = PartCache(), []
+    a, b = object(), object()
+
+    def make(src):
+        made.append(src)
+        return {"n": len(made)}
+
+    first = cache.parts([("a", a), ("v", (1.0, 2.0))], make)
+    again = cache.parts([("a", a), ("v", (1.0, 2.0))], make)           # the same object, an equal tuple
+    assert again[0] is first[0] and again[1] is first[1] and len(made) == 2
+    moved = cache.parts([("a", b), ("v", (1.0, 2.5))], make)
+    assert moved[0] is not first[0] and moved[1] is not first[1] and len(made) == 4
+    cache.parts([("v", (1.0, 2.5))], make)
+    assert cache.parts([("a", b)], make)[0] is not moved[0]            # "a" was forgotten, made again
 
 
 def test_every_checkpoint_of_a_dry_run_logs_as_json_dumps_would():
