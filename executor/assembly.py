@@ -8,7 +8,7 @@ simulated truth) itself. Its state is in components, each with ``state_dict()``:
 drift estimator (:mod:`.estimators`), the belief, the full scan's references
 (:mod:`.references`), the ledger (:mod:`.ledger`) and the course (:mod:`.course`); its
 scans and moves are plan stubs (:mod:`.scan_steps`, :mod:`.motion_steps`,
-:mod:`.drift_steps`). Frames: the plan and the belief are in the layout frame (the frame
+:mod:`.drift_steps`, :mod:`.drift_bootstrap`). Frames: the plan and the belief are in the layout frame (the frame
 of the first full scan); a layout point ``p`` is at ``p + offset(t)`` in the scanner frame.
 A layout with alignment marks is registered to that scan once the drift is bootstrapped
 and mapped into its frame (``_register``); the first plan carries the transform.
@@ -37,7 +37,8 @@ from .belief import Belief
 from .context import RunContext
 from .course import Course
 from .progress_docs import PROGRESS, ProgressDoc
-from .drift_steps import bootstrap, unskewed_obstacles
+from .drift_bootstrap import bootstrap
+from .drift_steps import unskewed_obstacles
 from .engine import Msg
 from .estimators import estimator_for
 from .motion_steps import travel_to

@@ -28,6 +28,8 @@ carries ``ε`` as its learnt creep amplitude error and ``λ`` as a static of its
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 
 from nanoasm.drift.creep import creep_offset, creep_tau_sensitivity
@@ -265,13 +267,14 @@ class ScanDrift:
         M = np.hstack([M, step])
         return M @ np.concatenate([self.theta, self.jump]), M @ self.cov_j @ M.T
 
-    def jump_evidence(self) -> tuple[np.ndarray, np.ndarray, float, float]:
+    def jump_evidence(self, tears_only: bool = False) -> tuple[np.ndarray, np.ndarray, float, float]:
         """``(J, C_J, Jᵀ C_J⁻¹ J, since)``: the jump of the drift after the full scan began
-        that the references measure, whichever of its times fits them best, its
-        covariance, Wald statistic and time (s after the epoch): :func:`.scan_jump.evidence`."""
+        that the references measure, whichever of its times (``tears_only``: within the
+        scan) fits them best, its covariance, Wald statistic and time (s after the epoch):
+        :func:`.scan_jump.evidence`."""
         from .scan_jump import evidence
 
-        return evidence(self)
+        return evidence(self, tears_only)
 
     def take_jump(self, since: float | None = None) -> None:
         """Take the jump into the model from now on, counting from ``since`` (s after the
@@ -317,11 +320,35 @@ class ScanDrift:
         key = max(self.rows, key=lambda k: (self.disagreement(k), str(k)))
         return key, self.disagreement(key), len(self.rows[key])
 
-    def remove(self, key) -> None:
-        """Take reference ``key``'s components out of the model."""
-        for h, z, var in self.rows.pop(key, ()):
+    def remove(self, key) -> tuple[list, list]:
+        """Take reference ``key``'s components out of the model; returns them (its rows
+        and their times) for :meth:`restore`."""
+        rows = self.rows.pop(key, [])
+        for h, z, var in rows:
             self._add(h, z, var, -1.0)
-        self._seen.pop(key, None)
+        return rows, self._seen.pop(key, [])
+
+    def restore(self, key, rows: list, seen: list) -> None:
+        """Put reference ``key``'s components back as :meth:`remove` returned them (the
+        jump counted from where it counts now)."""
+        out = []
+        for (h, z, var), (n, tau0, tau1) in zip(rows, seen):
+            g = h.copy()
+            g[PARAMETERS:] = n if self.tau_jump is not None and tau0 < self.tau_jump <= tau1 else 0.0
+            out.append((g, z, var))
+            self._add(g, z, var, 1.0)
+        self.rows[key], self._seen[key] = out, list(seen)
+
+    def trial(self) -> ScanDrift:
+        """A copy to try leaving references out on (:meth:`remove`, :meth:`take_jump`)
+        without touching this one: its own references and sums, the moves' Jacobians
+        shared (they do not change with the references)."""
+        out = copy.copy(self)
+        out.rows = {k: list(v) for k, v in self.rows.items()}
+        out._seen = {k: list(v) for k, v in self._seen.items()}
+        for name in ("info_j", "eta_j", "theta", "cov", "cov_j", "jump"):
+            setattr(out, name, getattr(self, name).copy())
+        return out
 
     def state_dict(self) -> dict:
         return {"epoch": self.epoch, "theta": self.theta.tolist(), "cov": self.cov.tolist(),

@@ -14,7 +14,7 @@ import numpy as np
 from .scan_drift import JUMP_CARRIERS, PARAMETERS
 
 
-def evidence(sd) -> tuple[np.ndarray, np.ndarray, float, float]:
+def evidence(sd, tears_only: bool = False) -> tuple[np.ndarray, np.ndarray, float, float]:
     """``(J, C_J, Jᵀ C_J⁻¹ J, since)``: the jump of the drift after the full scan began
     that the references measure with ``θ`` (the model with it), its covariance, its Wald
     statistic and the time it counts from (s after the epoch), whichever of these fits
@@ -30,7 +30,8 @@ def evidence(sd) -> tuple[np.ndarray, np.ndarray, float, float]:
     others, read as a jump of 150, -75 nm ± 21 from the second reference's time, with
     a statistic of 56 on a drift without a jump; the run relocalised 20 times). The
     statistic is the least with any one reference left out (:func:`_without_any_one`);
-    0 when no reference measured a jump."""
+    0 when no reference measured a jump. ``tears_only``: of the times within the scan
+    alone."""
     none = np.zeros(2), sd._prior_j[PARAMETERS:, PARAMETERS:].copy(), 0.0, sd.tau_end
     if sd.tau_end is None or not sd._seen:
         return none
@@ -38,7 +39,8 @@ def evidence(sd) -> tuple[np.ndarray, np.ndarray, float, float]:
     after = sorted({t1 for comps in seen for _, _, t1 in comps})[1:]
     row_times = sorted({t0 for comps in seen for _, t0, _ in comps})
     best = None
-    for since in [sd.tau_end, *after, *(0.5 * (a + b) for a, b in zip(row_times, row_times[1:]))]:
+    tears = [0.5 * (a + b) for a, b in zip(row_times, row_times[1:])]
+    for since in (tears if tears_only else [sd.tau_end, *after, *tears]):
         carry = sum(any(t0 < since <= t1 for _, t0, t1 in comps) for comps in seen)
         if carry < (JUMP_CARRIERS if since > sd.tau_end else 2) or (since != sd.tau_end and len(seen) - carry < 2):
             continue

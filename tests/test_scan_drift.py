@@ -306,3 +306,52 @@ def test_a_jump_while_the_full_scan_is_made_tears_it_and_is_placed_between_rows(
     assert np.abs(sd.theta[:2] - v).max() < 0.01 and np.abs(sd.jump - J).max() < 5.0
     assert sd.step(500.0) == pytest.approx([0.0, 0.0]) and sd.step(700.0) == pytest.approx(sd.jump)
     assert sd.step(1500.0) == pytest.approx(sd.jump)
+
+
+def test_two_references_off_together_are_left_out_not_the_good_ones_the_greedy_test_takes():
+    """Two neighbours taken for references, both off about 100 nm the same way, pull the
+    fit so that a good reference looks worst: one at a time, the test left out reference
+    0 first (allpushed seed 2 with roomy picks: three good references out, the bad one
+    kept). The consensus tries every set of up to two and leaves out those two alone,
+    without touching the model it was asked about."""
+    from nanoasm.executor.drift_bootstrap import _jumped
+    from nanoasm.executor.scan_consensus import consistent, left_out
+
+    clean, v = _bootstrap(0.3, creep_std=0.002, end=1000.0)
+    assert left_out(clean, {}, 0.9999, 2, _jumped) == ([], [])
+    sd, _ = _bootstrap(0.3, creep_std=0.002, end=1000.0, wrong={1: (-108.0, 14.0), 2: (-100.0, 10.0)})
+    assert not consistent(sd, 0.9999) and sd.worst()[0] == 0        # the greedy test's pick
+    theta, info = sd.theta.copy(), sd.info_j.copy()
+    assert left_out(sd, {}, 0.9999, 2, _jumped) == ([1, 2], [])
+    np.testing.assert_array_equal(sd.theta, theta)
+    np.testing.assert_array_equal(sd.info_j, info)
+    assert set(sd.rows) == set(range(8))
+    for k in (1, 2):
+        sd.remove(k)
+    assert consistent(sd, 0.9999) and np.abs(sd.theta[:2] - v).max() < 0.002
+    # with one at a time allowed, no single reference leaves a consistent model: the worst goes
+    assert left_out(_bootstrap(0.3, creep_std=0.002, end=1000.0, wrong={1: (-108.0, 14.0), 2: (-100.0, 10.0)})[0],
+                    {}, 0.9999, 1, _jumped) == ([0], [])
+
+
+def test_a_reference_left_out_alone_is_taken_back_when_another_shows_the_same():
+    """A tear of the full scan (300 nm at 600 s): the references on the rows before it
+    carry it, each the only one there until a second is scanned, and one alone is an
+    outlier, not a tear (allpushed seed 2 at 300 s: o1, o2 and o3 left out one after the
+    other, the tear never taken). Left out, it stays aside; once another on those rows
+    agrees with it, both stay and the tear goes into the model."""
+    from nanoasm.executor.drift_bootstrap import _jumped
+    from nanoasm.executor.scan_consensus import left_out
+
+    J = np.array([-20.0, 300.0])
+    sd, v = _bootstrap(0.3, creep_std=0.002, end=1000.0, jump=J, tear=600.0)
+    for k in (2, 3, 4):
+        sd.remove(k)
+    aside = {1: sd.remove(1)}
+    _jumped(sd)
+    assert not sd.stepped and sd.worst()[0] == 0       # alone before the tear: the outlier
+    assert left_out(sd, {}, 0.9999, 2, _jumped) == ([0], [])
+    assert left_out(sd, aside, 0.9999, 2, _jumped) == ([], [1])
+    sd.restore(1, *aside[1])
+    _jumped(sd)
+    assert sd.stepped and np.abs(sd.jump - J).max() < 10.0 and np.abs(sd.theta[:2] - v).max() < 0.02
