@@ -1,4 +1,4 @@
-"""What the drift bootstrap scans again, and in what order (:func:`picks`).
+"""What the drift bootstrap scans again, and in what order (:class:`Picks`).
 
 The bootstrap's first references are scanned while the drift since the full scan is
 known only from its prior: at 0.5 nm/s, a reference seen 570 s before is 285 nm (1σ)
@@ -64,10 +64,8 @@ class Picks:
             if not open_:
                 break
             j = min(open_, key=lambda j: (self.failed[j] >= TRIES, self.have[j], j))
-            pick = self.stretches[j].pop(0)
-            self._of[pick[1]], self._last = j, j
             self.failed[j] += 1                         # until found
-            yield pick
+            yield self._take(j)
         self._last = None
         yield from self.edges
 
@@ -76,9 +74,13 @@ class Picks:
         for _ in range(TRIES):
             if not self.stretches or not self.stretches[0]:
                 return
-            pick = self.stretches[0].pop(0)
-            self._of[pick[1]], self._last = 0, 0
-            yield pick
+            yield self._take(0)
+
+    def _take(self, j: int):
+        """The next pick of stretch ``j``, remembered as the last."""
+        pick = self.stretches[j].pop(0)
+        self._of[pick[1]], self._last = j, j
+        return pick
 
     def found(self) -> None:
         """The last pick measured the drift."""

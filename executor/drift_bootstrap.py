@@ -168,9 +168,9 @@ def _tear_or_jump(ctx: RunContext, latest, scan_more):
     scan = ctx.drift.scan
     if not (scan.stepped and scan.tau_jump > scan.tau_end):
         return
-    tear = scan.jump_evidence(tears_only=True)[3]
+    after, tear = scan.tau_jump, scan.jump_evidence(tears_only=True)[3]
     for kind, rid, seen_t in latest:
-        for since in (scan.tau_jump, tear) if tear < scan.tau_end else (scan.tau_jump,):
+        for since in (after, tear) if tear < scan.tau_end else (after,):
             scan.take_jump(since)
             before = len(scan.rows)
             yield from scan_more([(kind, rid, seen_t)], widen=False)

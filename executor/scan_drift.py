@@ -331,13 +331,12 @@ class ScanDrift:
     def restore(self, key, rows: list, seen: list) -> None:
         """Put reference ``key``'s components back as :meth:`remove` returned them (the
         jump counted from where it counts now)."""
-        out = []
-        for (h, z, var), (n, tau0, tau1) in zip(rows, seen):
-            g = h.copy()
-            g[PARAMETERS:] = n if self.tau_jump is not None and tau0 < self.tau_jump <= tau1 else 0.0
-            out.append((g, z, var))
-            self._add(g, z, var, 1.0)
-        self.rows[key], self._seen[key] = out, list(seen)
+        self.rows[key], self._seen[key] = list(rows), list(seen)
+        for h, z, var in rows:
+            self._add(h, z, var, 1.0)
+        if self.tau_jump is not None:
+            self.rows, self.info_j, self.eta_j = self._split(self.tau_jump)
+            self._solve()
 
     def trial(self) -> ScanDrift:
         """A copy to try leaving references out on (:meth:`remove`, :meth:`take_jump`)
