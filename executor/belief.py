@@ -71,6 +71,13 @@ class Belief:
     def lose(self, object_id: str) -> None:
         self.lost.add(object_id)
 
+    def forget(self, object_id: str) -> None:
+        """``object_id`` was never an object of its own (another imaged twice): gone."""
+        self.objects.pop(object_id, None)
+        self.seen.pop(object_id, None)
+        self.touched.discard(object_id)
+        self.lost.discard(object_id)
+
     def to_dict(self) -> dict:
         return {"objects": [o.to_dict() for o in self.objects.values()],
                 "lost": sorted(self.lost), "touched": sorted(self.touched)}

@@ -82,6 +82,24 @@ class Picks:
         self._of[pick[1]], self._last = j, j
         return pick
 
+    def between(self, t0: float, t1: float) -> list:
+        """Unscanned particles whose row lies between ``t0`` and ``t1`` (s; not corners,
+        whose sites lie on several rows)."""
+        return [p for s in self.stretches for p in s if p[0] == "object" and t0 < p[2] < t1]
+
+    def take(self, pick) -> None:
+        """Take ``pick`` (of :meth:`between`) out of its stretch, remembered as the last."""
+        for j, s in enumerate(self.stretches):
+            if pick in s:
+                s.remove(pick)
+                self._of[pick[1]], self._last = j, j
+                return
+
+    def forget(self, rid: str) -> None:
+        """``rid`` is no object of its own (:func:`~.tear_doubles.doubles`): never picked."""
+        for s in self.stretches:
+            s[:] = [p for p in s if p[1] != rid]
+
     def found(self) -> None:
         """The last pick measured the drift."""
         if self._last is not None:

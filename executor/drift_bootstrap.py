@@ -10,12 +10,13 @@ import math
 
 import numpy as np
 
-from . import bootstrap_picks, creep_terms
+from . import bootstrap_picks, creep_terms, tear_doubles
 from .context import RunContext
 from .drift_steps import emit_drift, scan_feature_lines
 from .engine import Msg
 from .scan_consensus import left_out
 from .scan_drift import JUMP_GATE
+from .scan_jump import tear_band
 from .scan_steps import locate
 
 #: Objects scanned again to find the drift velocity from the full scan's skew.
@@ -36,6 +37,15 @@ BOOTSTRAP_OUTLIERS = 3
 BOOTSTRAP_LEFT_TOGETHER = 2
 #: Gate probability of that test (χ² of a reference against the others' model).
 BOOTSTRAP_GATE = 0.9999
+#: Objects of the rows between the two references around a tear looked for on either side
+#: of it (:func:`_narrow_tear`), each halving the rows it may lie in.
+TEAR_PROBES = 6
+#: Room (nm) from any other object's footprint a probe of a tear wants about where it
+#: is looked for, on either side (the jump apart), before it is chosen for lying halfway:
+#: a search reaches its lines' margin and the object's radius beyond its 3σ (some 160 nm
+#: for a 90 nm particle), and where the side is wrong a neighbour there is taken for it
+#: (scale300 seed 3, a tear at 1096 s: one 125 nm from the wrong spot put it at 1041 s).
+TEAR_ROOM = 250.0
 #: Variance (nm²) of a component a bootstrap reference measures: the located centre's
 #: and the full scan's (2 nm each), and what the model leaves (the random walk, creep).
 BOOTSTRAP_VAR = 16.0
@@ -75,21 +85,24 @@ def bootstrap(ctx: RunContext):
     order = iter(picks)
     seen_objects, state = {}, {"used": 0, "t_last": t_start}
 
+    def take(kind, rid, scanned):
+        """Measure the model with a reference scanned again (:func:`_bootstrap_rows`)."""
+        rows, t, seen = scanned
+        lam1 = drift.filter.creep.tau_sensitivity(t - drift.epoch)   # every move's, per unit λ
+        for n, z, tau1, tau0, creep1, var in rows:
+            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1, key=(kind, rid))
+        if seen is not None:
+            seen_objects[rid] = seen
+        picks.found()
+        state["used"] += 1
+        state["t_last"] = t
+
     def scan_more(source=order, enough=None, widen=True):
         """Scan the picks in order until enough references measured the model."""
         for kind, rid, seen_t in source:
             scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t, widen)
             if scanned is not None:
-                rows, t, seen = scanned
-                lam1 = drift.filter.creep.tau_sensitivity(t - drift.epoch)   # every move's, per unit λ
-                for n, z, tau1, tau0, creep1, var in rows:
-                    drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1,
-                                       key=(kind, rid))
-                if seen is not None:
-                    seen_objects[rid] = seen
-                picks.found()
-                state["used"] += 1
-                state["t_last"] = t
+                take(kind, rid, scanned)
             if state["used"] >= (enough or (count if drift.velocity_known else 3 * BOOTSTRAP_OBJECTS)):
                 return
 
@@ -124,6 +137,16 @@ def bootstrap(ctx: RunContext):
         yield from scan_more()
         _jumped(drift.scan)
     yield from _tear_or_jump(ctx, picks.latest(), scan_more)
+    for kept, again, d in tear_doubles.doubles(ctx):
+        if again in seen_objects and kept not in seen_objects:
+            kept, again = again, kept
+        ctx.belief.forget(again)
+        ctx.refs.forget(again)
+        picks.forget(again)
+        seen_objects.pop(again, None)
+        yield Msg("event", (f"bootstrap: {again} is {kept} imaged again by the tear of the full scan ({d:.1f} nm "
+                            f"apart with the jump taken out): forgotten",))
+    yield from _narrow_tear(ctx, picks, take)
     used, t_last = state["used"], state["t_last"]
     yield from _jump_event(drift)
     t_end = yield Msg("clock")
@@ -178,6 +201,67 @@ def _tear_or_jump(ctx: RunContext, latest, scan_more):
                 _jumped(scan)
                 return
     _jumped(scan)
+
+
+def _narrow_tear(ctx: RunContext, picks, take):
+    """A tear of the full scan is placed halfway between the rows of the two references
+    around it, and the objects on the rows between may lie on its other side, moved by
+    the jump where they were not or not where they were (scale300, a tear halfway through
+    a 2191 s scan: 1-18 objects 280-310 nm off at the bootstrap's end, seeds 1-10). So
+    the particle of those rows nearest halfway with room about it on either side
+    (:data:`TEAR_ROOM`) is looked for where each side puts it, with no widened search,
+    and the sighting nearer its side's place kept: it halves the rows the tear may lie in.
+    Both sides, as a neighbour, or an object the torn scan did not show, can be found where
+    the wrong side puts it (scale300 seed 3: one 45 nm from there, while the object lay 5 nm
+    from the other side's place). Up to :data:`TEAR_PROBES` objects, until no unscanned
+    particle lies between."""
+    scan, ep = ctx.drift.scan, ctx.drift.epoch
+    for _ in range(TEAR_PROBES):
+        band = tear_band(scan)
+        cands = picks.between(band[0] + ep, band[1] + ep) if band else []
+        if not cands:
+            return
+        a, b = band
+        room = _spots_room(ctx, [c[1] for c in cands], scan.jump)
+        mid = 0.5 * (a + b)
+        kind, rid, seen_t = pick = min(cands, key=lambda c: (room[c[1]] < TEAR_ROOM, abs(c[2] - ep - mid), c[1]))
+        picks.take(pick)
+        tau, placed = seen_t - ep, scan.tau_jump
+        seen = []
+        for since in (0.5 * (a + tau), 0.5 * (tau + b)):     # its row after the tear, before it
+            scan.take_jump(since)
+            t = yield Msg("clock")
+            where = ctx.position(rid) + ctx.offset(t)
+            scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t, widen=False)
+            if scanned is not None:
+                seen.append((math.dist(scanned[2][1].at, where), since, scanned))
+        scan.take_jump(placed)
+        if seen:
+            _, since, scanned = min(seen, key=lambda s: s[0])
+            scan.take_jump(since)
+            take(kind, rid, scanned)
+        _jumped(scan)
+        side = "not found on either side of it" if not seen else \
+            f"seen on the rows {'after' if since < tau else 'before'} it"
+        yield Msg("event", (f"bootstrap: {rid}, on a row of {seen_t:.0f} s between references' rows of "
+                            f"{a + ep:.0f} and {b + ep:.0f} s around the tear, {side}",))
+
+
+def _spots_room(ctx: RunContext, ids: list, jump: np.ndarray) -> dict:
+    """Each object's room (nm) about where it is looked for on either side of a tear: the
+    least gap from its position in the full scan, and that less and plus the jump, to any
+    other object's footprint there."""
+    first = ctx.refs.first_seen
+    others = [oid for oid in first if oid in ctx.belief.objects]
+    at = np.array([first[oid][0] for oid in others], float).reshape(-1, 2)
+    radius = np.array([ctx.belief[oid].radius for oid in others])
+    out = {}
+    for rid in ids:
+        mine = np.array([oid != rid for oid in others])
+        p = np.asarray(first[rid][0], float)
+        gaps = [np.hypot(*(at[mine] - spot).T) - radius[mine] for spot in (p, p - jump, p + jump)]
+        out[rid] = float(min((g.min() for g in gaps if g.size), default=np.inf))
+    return out
 
 
 def _jump_event(drift):

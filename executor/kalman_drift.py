@@ -27,6 +27,7 @@ from . import creep_terms
 from .reference_choice import Candidate, best, object_candidates
 from .references import References
 from .scan_drift import EPS, LAM, PARAMETERS, ScanDrift, filter_theta
+from .scan_jump import against_torn_scan
 from .strategy import ExecOptions
 from .trust import Trust
 
@@ -175,9 +176,8 @@ class Kalman:
 
     def skew_cov(self, tau: float) -> np.ndarray:
         """Covariance (nm²) that :meth:`unskew` carries through ``θ``'s uncertainty."""
-        _, cov = self.scan_theta()
         J = self.scan.jacobian(tau)
-        return J @ cov @ J.T
+        return J @ self.scan_theta()[1] @ J.T
 
     def full_scan_cov(self, t: float, tau: float) -> np.ndarray:
         """Covariance (nm²) of where a point the full scan saw at ``τ`` lies in the
@@ -226,9 +226,8 @@ class Kalman:
         """Whether a reference is due before a push at ``t``: none yet, the last update
         older than ``reference_every``, or the offset's σ above ``reference_sigma``."""
         f = self.filter
-        if not (f.measurements or f.resumed_measurements):
-            return True
-        return t - f.time >= options.reference_every or self.sigma(t) > options.reference_sigma
+        return (not (f.measurements or f.resumed_measurements) or t - f.time >= options.reference_every
+                or self.sigma(t) > options.reference_sigma)
 
     def reference_target(self, ctx, t: float, near, obj_id, *, force: bool = False) -> Candidate | None:
         """The reference to scan before a push of ``obj_id`` near ``near`` (None: not due,
@@ -262,6 +261,7 @@ class Kalman:
         static = self.static_rows(np.eye(2), [tau, tau])
         z, static = creep_terms.with_creep(self, z, static, creep_sens)
         R = np.asarray(cov, float) + np.eye(2) * FULL_SCAN_VAR
+        z, R = against_torn_scan(self.scan, z, R, np.eye(2), [tau, tau])
         ref = self.unskew(raw, tau)
         if obj_id in refs.quarantine:
             if self._consistent(t, z, static, R):
@@ -285,6 +285,7 @@ class Kalman:
         its site at ``taus`` (s after the epoch; ``creep_sens`` as for :meth:`measure`,
         one a row); whether the gate accepted it."""
         static = None if taus is None else self.static_rows(H, taus)
+        z, R = (z, R) if taus is None else against_torn_scan(self.scan, z, R, H, taus)
         z, static = creep_terms.with_creep(self, z, static, creep_sens)
         m = self.filter.measure_projected(self.clamp(t), z, H, R, label=feature_id, static=static)
         if m.accepted:
@@ -391,8 +392,7 @@ class Kalman:
         out = cls(state["origin"], state["epoch"], options)
         out.scan = ScanDrift.from_state(state["scan"])
         out.filter = DriftFilter.from_state(out.params, state["filter"])
-        ca = state["creep_anchor"]
-        out.creep_anchor = None if ca is None else np.asarray(ca, float)
+        out.creep_anchor = None if state["creep_anchor"] is None else np.asarray(state["creep_anchor"], float)
         out.trust = Trust.from_state(state)
         return out
 

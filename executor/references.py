@@ -86,6 +86,13 @@ class References:
         return cls({o.id: (np.asarray(o.at, float), seen[o.id].t) for o in objects},
                    {o.id for o in objects})
 
+    def forget(self, obj_id: str) -> None:
+        """``obj_id`` was never an object of its own (:meth:`Belief.forget`)."""
+        self.first_seen.pop(obj_id, None)
+        self.raw.discard(obj_id)
+        self.gated.discard(obj_id)
+        self.quarantine.pop(obj_id, None)
+
     def is_reference(self, obj_id: str, pushed, lost) -> bool:
         """Whether an object may measure drift: seen in the full scan, never pushed,
         never gated out, not lost (a quarantined one only once re-validated)."""

@@ -80,3 +80,28 @@ def _without_any_one(sd, rows: dict, info: np.ndarray, eta: np.ndarray) -> float
         z = np.array([c[1] for c in comps])
         least = min(least, _jump_fit(sd, info - (g.T * w) @ g, eta - g.T @ (w * z))[3])
     return least
+
+
+def tear_band(sd) -> tuple[float, float] | None:
+    """``(a, b)``: the full scan's rows (s after the epoch) of the references either side
+    of the tear in the model, between which it may lie; None without a tear."""
+    if not (sd.stepped and sd.tau_end is not None and sd.tau_jump < sd.tau_end):
+        return None
+    rows = {t0 for comps in sd._seen.values() for _, t0, _ in comps}
+    before = [r for r in rows if r < sd.tau_jump]
+    after = [r for r in rows if r >= sd.tau_jump]
+    return (max(before), min(after)) if before and after else None
+
+
+def against_torn_scan(sd, z: np.ndarray, R: np.ndarray, normals, taus) -> tuple[np.ndarray, np.ndarray]:
+    """Components ``z`` (covariance ``R``) measured along ``normals`` against the full
+    scan's rows of ``taus`` (s after the epoch), with the jump of a tear added to those
+    on rows after it, and its covariance: their positions carry the jump, as the
+    filter's offset does since the bootstrap (mixed seed 9, a tear at 250 s: every
+    reference on the rows after it was 300 nm out of place, rejected, and the run
+    relocalised for 9800 s)."""
+    after = np.array([sd.stepped and sd.tau_jump is not None and tau >= sd.tau_jump for tau in taus], float)
+    if not after.any():
+        return z, R
+    G = np.asarray(normals, float) * after[:, None]
+    return np.asarray(z, float) + G @ sd.jump, np.asarray(R, float) + G @ sd.cov_j[-2:, -2:] @ G.T

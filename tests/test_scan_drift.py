@@ -308,6 +308,25 @@ def test_a_jump_while_the_full_scan_is_made_tears_it_and_is_placed_between_rows(
     assert sd.step(1500.0) == pytest.approx(sd.jump)
 
 
+def test_a_reference_on_the_rows_after_a_tear_is_measured_with_the_jump_its_position_carries():
+    """The filter's offset carries a jump since the full scan began; a position on a row
+    the jump tore the scan at carries it too, so what is measured against that row gains
+    the jump (and its covariance) and one on a row before does not (mixed seed 9, a tear
+    at 250 s: every reference on the rows after it was rejected 300 nm out of place)."""
+    from nanoasm.executor.scan_jump import against_torn_scan
+
+    J = np.array([-20.0, 300.0])
+    sd, _ = _bootstrap(0.3, creep_std=0.002, end=1000.0, jump=J, tear=600.0)
+    z, R, H = np.array([1.0, 2.0, 3.0]), np.eye(3) * 4.0, np.array([[1.0, 0.0], [0.0, 1.0], [0.6, 0.8]])
+    same = against_torn_scan(sd, z, R, H, [300.0, 700.0, 900.0])                 # no jump in the model yet
+    assert same[0] is z and same[1] is R
+    sd.take_jump(sd.jump_evidence()[3])
+    z2, R2 = against_torn_scan(sd, z, R, H, [300.0, 700.0, 900.0])
+    np.testing.assert_allclose(z2, [1.0, 2.0 + sd.jump[1], 3.0 + H[2] @ sd.jump])
+    C = sd.cov_j[-2:, -2:]
+    assert R2[0, 0] == 4.0 and R2[1, 1] == pytest.approx(4.0 + C[1, 1]) and R2[1, 2] == pytest.approx(C[1] @ H[2])
+
+
 def test_two_references_off_together_are_left_out_not_the_good_ones_the_greedy_test_takes():
     """Two neighbours taken for references, both off about 100 nm the same way, pull the
     fit so that a good reference looks worst: one at a time, the test left out reference
