@@ -6,6 +6,7 @@ drift during the scan or after it told from velocity (:mod:`~nanoasm.executor.sc
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -85,12 +86,14 @@ def bootstrap(ctx: RunContext):
     order = iter(picks)
     seen_objects, state = {}, {"used": 0, "t_last": t_start}
 
-    def take(kind, rid, scanned):
-        """Measure the model with a reference scanned again (:func:`_bootstrap_rows`)."""
+    def take(kind, rid, scanned, key=None):
+        """Measure the model with a reference scanned again (:func:`_bootstrap_rows`),
+        kept under ``key`` (by default ``(kind, id)``)."""
         rows, t, seen = scanned
         lam1 = drift.filter.creep.tau_sensitivity(t - drift.epoch)   # every move's, per unit λ
         for n, z, tau1, tau0, creep1, var in rows:
-            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1, key=(kind, rid))
+            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1,
+                               key=key or (kind, rid))
         if seen is not None:
             seen_objects[rid] = seen
         picks.found()
@@ -136,7 +139,7 @@ def bootstrap(ctx: RunContext):
         _jumped(drift.scan)
         yield from scan_more()
         _jumped(drift.scan)
-    yield from _tear_or_jump(ctx, picks.latest(), scan_more)
+    yield from _tear_or_jump(ctx, picks.latest(), scan_more, take)
     for kept, again, d in tear_doubles.doubles(ctx):
         if again in seen_objects and kept not in seen_objects:
             kept, again = again, kept
@@ -181,7 +184,7 @@ def _jumped(scan) -> None:
         scan.drop_jump()
 
 
-def _tear_or_jump(ctx: RunContext, latest, scan_more):
+def _tear_or_jump(ctx: RunContext, latest, scan_more, take):
     """Scanned again latest row first, references fit a jump from one's time and a tear
     between two's rows alike (the same ones carry it), which put the full scan's rows
     differently (mixed seed 1, a tear at 250 s taken for a jump after the scan: the run
@@ -192,15 +195,34 @@ def _tear_or_jump(ctx: RunContext, latest, scan_more):
     if not (scan.stepped and scan.tau_jump > scan.tau_end):
         return
     after, tear = scan.tau_jump, scan.jump_evidence(tears_only=True)[3]
-    for kind, rid, seen_t in latest:
+    again = _scanned_before(scan, after, ctx.drift.epoch)
+    for (kind, rid, seen_t), anew in itertools.chain(((p, False) for p in latest), ((r, True) for r in again)):
         for since in (after, tear) if tear < scan.tau_end else (after,):
             scan.take_jump(since)
             before = len(scan.rows)
-            yield from scan_more([(kind, rid, seen_t)], widen=False)
+            if anew:      # kept apart: its first scan, before the jump, carries none
+                scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t, widen=False)
+                if scanned is not None:
+                    take(kind, rid, scanned, key=(kind, rid, "again"))
+            else:
+                yield from scan_more([(kind, rid, seen_t)], widen=False)
             if len(scan.rows) > before:
                 _jumped(scan)
                 return
     _jumped(scan)
+
+
+def _scanned_before(scan, after: float, ep: float):
+    """References of the latest rows scanned again before ``after`` (s after the epoch),
+    latest row first, at most :data:`~.bootstrap_picks.TRIES`: where no unscanned pick of
+    the latest rows is left, one of these scanned once more tells a jump at ``after`` (it
+    now carries it) from a tear (it does not) as well (allpushed seed 8, a tear at 300 s,
+    nine particles: taken for a jump after the scan, the four references of the latest
+    rows were put 300 nm from where they lay)."""
+    rows = {key: max(t0 for _, t0, _ in seen) for key, seen in scan._seen.items()
+            if all(t1 < after for _, _, t1 in seen)}
+    for key in sorted(rows, key=lambda k: -rows[k])[:bootstrap_picks.TRIES]:
+        yield (key[0], key[1], rows[key] + ep)
 
 
 def _narrow_tear(ctx: RunContext, picks, take):

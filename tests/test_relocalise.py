@@ -248,3 +248,19 @@ def test_objects_a_tear_imaged_twice_are_one_object_each():
     for text in probes:
         row = float(text.split("on a row of ")[1].split(" s")[0])
         assert ("after" in text.split("seen on the rows ")[1]) == (row > jump_at), text
+
+
+@pytest.mark.parametrize("after, where", [(-300.0, "during the full scan"), (2.0, "after the full scan")])
+def test_a_reference_scanned_again_tells_a_tear_from_a_jump_after_the_scan(after, where):
+    """allpushed seed 8 (nine particles): the references fit a tear at 300 s of the 600 s
+    scan and a jump after it alike, and no unscanned pick of the latest rows was left to
+    tell them apart; taken for a jump after the scan, the tear left the four references of
+    the latest rows 300 nm from where they lay. One of them scanned once more carries a jump
+    after the scan, or not (a tear); a jump 2 s after the scan stays one."""
+    scene, layout = family_case("allpushed", seed := 8)
+    events = _FirstEstimate()
+    with pytest.raises(_FirstEstimate.Stop):
+        dry_run(_with_jump(scene, 300.0, scene.area[1] / 10.0 + after), layout, options=ExecOptions(strategy="full"),
+                subscribers=[events])
+    [jumped] = [t for t in events.texts if t.startswith("the drift jumped by")]
+    assert where in jumped, (seed, jumped)
