@@ -233,9 +233,9 @@ def _narrow_tear(ctx: RunContext, picks, take):
     the particle of those rows nearest halfway with room about it on either side
     (:data:`TEAR_ROOM`) is looked for where each side puts it, with no widened search,
     and the sighting nearer its side's place kept: it halves the rows the tear may lie in.
-    Both sides, as a neighbour, or an object the torn scan did not show, can be found where
-    the wrong side puts it (scale300 seed 3: one 45 nm from there, while the object lay 5 nm
-    from the other side's place). Up to :data:`TEAR_PROBES` objects, until no unscanned
+    Both sides are looked at, since a neighbour, or an object the torn scan did not show,
+    can be found where the wrong side puts it (scale300 seed 3: one 45 nm from there, while
+    the object lay 5 nm from the other side's place). Up to :data:`TEAR_PROBES` objects, until no unscanned
     particle lies between."""
     scan, ep = ctx.drift.scan, ctx.drift.epoch
     for _ in range(TEAR_PROBES):
