@@ -76,9 +76,9 @@ class Picks:
                 return
             yield self._take(0)
 
-    def _take(self, j: int):
-        """The next pick of stretch ``j``, remembered as the last."""
-        pick = self.stretches[j].pop(0)
+    def _take(self, j: int, i: int = 0):
+        """Pick ``i`` of stretch ``j`` (by default its next), taken out and remembered as the last."""
+        pick = self.stretches[j].pop(i)
         self._of[pick[1]], self._last = j, j
         return pick
 
@@ -91,8 +91,7 @@ class Picks:
         """Take ``pick`` (of :meth:`between`) out of its stretch, remembered as the last."""
         for j, s in enumerate(self.stretches):
             if pick in s:
-                s.remove(pick)
-                self._of[pick[1]], self._last = j, j
+                self._take(j, s.index(pick))
                 return
 
     def forget(self, rid: str) -> None:

@@ -17,7 +17,7 @@ from .drift_steps import emit_drift, scan_feature_lines
 from .engine import Msg
 from .scan_consensus import left_out
 from .scan_drift import JUMP_GATE
-from .scan_jump import tear_band
+from .scan_jump import scanned_before, tear_band
 from .scan_steps import locate
 
 #: Objects scanned again to find the drift velocity from the full scan's skew.
@@ -43,8 +43,8 @@ BOOTSTRAP_GATE = 0.9999
 TEAR_PROBES = 6
 #: Room (nm) from any other object's footprint a probe of a tear wants about where it
 #: is looked for, on either side (the jump apart), before it is chosen for lying halfway:
-#: a search reaches its lines' margin and the object's radius beyond its 3σ (some 160 nm
-#: for a 90 nm particle), and where the side is wrong a neighbour there is taken for it
+#: a search reaches its lines' margin and the object's radius beyond its 3σ (15 + 55 + 45
+#: nm for a 90 nm particle), and where the side is wrong a neighbour there is taken for it
 #: (scale300 seed 3, a tear at 1096 s: one 125 nm from the wrong spot put it at 1041 s).
 TEAR_ROOM = 250.0
 #: Variance (nm²) of a component a bootstrap reference measures: the located centre's
@@ -219,17 +219,15 @@ def _scanned_before(scan, after: float, ep: float):
     now carries it) from a tear (it does not) as well (allpushed seed 8, a tear at 300 s,
     nine particles: taken for a jump after the scan, the four references of the latest
     rows were put 300 nm from where they lay)."""
-    rows = {key: max(t0 for _, t0, _ in seen) for key, seen in scan._seen.items()
-            if all(t1 < after for _, _, t1 in seen)}
-    for key in sorted(rows, key=lambda k: -rows[k])[:bootstrap_picks.TRIES]:
-        yield (key[0], key[1], rows[key] + ep)
+    for (kind, rid), row in scanned_before(scan, after, bootstrap_picks.TRIES):
+        yield kind, rid, row + ep
 
 
 def _narrow_tear(ctx: RunContext, picks, take):
     """A tear of the full scan is placed halfway between the rows of the two references
     around it, and the objects on the rows between may lie on its other side, moved by
     the jump where they were not or not where they were (scale300, a tear halfway through
-    a 2191 s scan: 1-18 objects 280-310 nm off at the bootstrap's end, seeds 1-10). So
+    a 2191 s scan: 1-18 objects 280-315 nm off at the bootstrap's end, seeds 1-10). So
     the particle of those rows nearest halfway with room about it on either side
     (:data:`TEAR_ROOM`) is looked for where each side puts it, with no widened search,
     and the sighting nearer its side's place kept: it halves the rows the tear may lie in.

@@ -100,8 +100,16 @@ def against_torn_scan(sd, z: np.ndarray, R: np.ndarray, normals, taus) -> tuple[
     filter's offset does since the bootstrap (mixed seed 9, a tear at 250 s: every
     reference on the rows after it was 300 nm out of place, rejected, and the run
     relocalised for 9800 s)."""
-    after = np.array([sd.stepped and sd.tau_jump is not None and tau >= sd.tau_jump for tau in taus], float)
+    after = np.array([sd._after(tau) for tau in taus], float)
     if not after.any():
         return z, R
     G = np.asarray(normals, float) * after[:, None]
     return np.asarray(z, float) + G @ sd.jump, np.asarray(R, float) + G @ sd.cov_j[-2:, -2:] @ G.T
+
+
+def scanned_before(sd, after: float, count: int) -> list[tuple]:
+    """The keys of up to ``count`` references scanned again only before ``after`` (s after
+    the epoch), with their latest row of the full scan: ``[(key, row)]``, latest row first."""
+    rows = {key: max(t0 for _, t0, _ in seen) for key, seen in sd._seen.items()
+            if all(t1 < after for _, _, t1 in seen)}
+    return sorted(rows.items(), key=lambda kv: -kv[1])[:count]

@@ -40,18 +40,16 @@ def doubles(ctx) -> list[tuple[str, str, float]]:
     first = {oid: v for oid, v in ctx.refs.first_seen.items() if oid in ctx.belief.objects}
     if band is None or len(first) < 2:
         return []
+    rows, image = ctx.landmarks.rows, ctx.full_scan
+    if rows is None or image is None or scan.jump[1] <= 0.0:
+        return []                                      # rows go up in y: a band skipped, none twice
     ep = drift.epoch
     ids = sorted(first)
-    y = np.array([first[oid][0][1] for oid in ids], float)
     tau = np.array([first[oid][1] - ep for oid in ids], float)
-    if np.ptp(y) <= 0.0:
-        return []
-    per_nm = float(np.polyfit(y, tau, 1)[0])           # s of rows per nm along the slow axis
+    per_nm = rows[1] / image.pixel_size                # s of rows per nm along the slow axis
     again = scan.jump[1] * per_nm                      # s of rows the jump scanned again
-    if again <= 0.0:
-        return []                                      # a band skipped: nothing twice
     a, b = band
-    size = max(ctx.belief[oid].diameter for oid in ids) * abs(per_nm)
+    size = max(ctx.belief[oid].diameter for oid in ids) * per_nm
     before = [i for i in range(len(ids)) if a - again - size <= tau[i] < b]
     after = [i for i in range(len(ids)) if a < tau[i] <= b + again + size]
     if not before or not after:

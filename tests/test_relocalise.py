@@ -264,3 +264,5 @@ def test_a_reference_scanned_again_tells_a_tear_from_a_jump_after_the_scan(after
                 subscribers=[events])
     [jumped] = [t for t in events.texts if t.startswith("the drift jumped by")]
     assert where in jumped, (seed, jumped)
+    dx, dy = (float(v) for v in jumped.split("jumped by ")[1].split(" nm")[0].split(","))
+    assert abs(math.hypot(dx, dy) - 300.0) < 20.0, jumped      # the jump itself, not one read from a mix
