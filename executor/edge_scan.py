@@ -19,7 +19,8 @@ import numpy as np
 
 from nanoasm.param import number
 
-from .edges import _check_profile, _crossing, _merge, _robust_std, _runs
+from .edges import _crossing, _merge, _runs
+from .substrate import _check_profile, _robust_std
 from .fixed_features import HEIGHT_TOLERANCE
 from .scan_lines import ScanLine, make_line, point, unit
 

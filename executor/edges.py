@@ -11,8 +11,8 @@ the image of a disc or capsule is again a disc or capsule (of a larger radius): 
 of it is bisected by the object's axis when it crosses the axis at a right angle.
 
 The substrate is a straight line (a tilted sample) fitted to the samples that lie well
-below the object, found by iterating from a low quantile; the noise is the robust spread
-of the substrate samples about it. Crossings are interpolated inversely (position as a
+below the object, found by iterating from a low quantile (:mod:`.substrate`); the noise
+is the robust spread of the substrate samples about it. Crossings are interpolated inversely (position as a
 function of height) through the two samples that bracket the level and the next one
 into the object: at 1 nm sampling this is within 0.05 nm of the exact crossing on the
 flank of a sphere seen by a spherical tip, which turns vertical just below half height,
@@ -27,6 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from nanoasm.param import number
+
+from .substrate import _check_profile, fit_baseline
 
 #: Largest height magnitude accepted in a profile (nm); larger is not a height.
 MAX_HEIGHT = 1e9
@@ -73,6 +75,15 @@ class Edges:
         1-σ, and on which side of the object it lies (-1 toward the line's start, +1 its
         end). A rod whose end touches a particle keeps its other end (see
         :mod:`~.rod_scan`).
+    substrate : float or None
+        Where found: the substrate's height under the object's centre (nm, the profile's
+        heights), which a line that sees no substrate of its own can be given.
+    inner : (left, right, left_std, right_std, level) or None
+        When no crossing pair was found because neighbours on both sides touch the object
+        (their tip-broadened images meet its image above the crossing level, as at the
+        ends of a rod between two particles): its crossings at ``level``, halfway between
+        the higher of the two saddles and its summit. Symmetric about the object's centre
+        for a symmetric object; its chord is shorter than at the usual level.
     """
 
     found: bool
@@ -86,6 +97,8 @@ class Edges:
     noise: float
     candidates: int
     end: tuple[float, float, int] | None = None
+    substrate: float | None = None
+    inner: tuple[float, float, float, float, float] | None = None
 
     @property
     def centre(self) -> float | None:
@@ -104,88 +117,6 @@ class Edges:
     @property
     def width_std(self) -> float | None:
         return None if not self.found else math.hypot(self.left_std, self.right_std)
-
-
-def _check_profile(profile) -> np.ndarray:
-    z = np.asarray(profile, dtype=float)
-    if z.ndim != 1 or z.size < 5:
-        raise ValueError(f"profile must be a 1-D array of at least 5 heights, got shape {z.shape}")
-    if not np.all(np.isfinite(z)):
-        raise ValueError("profile must hold finite heights (NaN or inf found)")
-    if np.abs(z).max() > MAX_HEIGHT:
-        raise ValueError(f"profile heights must be below {MAX_HEIGHT:g} nm in magnitude")
-    return z
-
-
-def _dilate(mask: np.ndarray, k: int) -> np.ndarray:
-    if k <= 0 or not mask.any():
-        return mask
-    c = np.concatenate([[0], np.cumsum(mask, dtype=np.int64)])
-    n = mask.size
-    i = np.arange(n)
-    lo, hi = np.maximum(i - k, 0), np.minimum(i + k + 1, n)
-    return (c[hi] - c[lo]) > 0
-
-
-def _robust_std(r: np.ndarray) -> float:
-    if r.size < 2:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(r - np.median(r))))
-
-
-def fit_baseline(profile, spacing: float, height: float, *, band: float = 0.15,
-                 iterations: int = 8) -> tuple[np.ndarray, float]:
-    """Substrate line under a profile and the noise about it.
-
-    Parameters
-    ----------
-    profile : (n,) array
-        Heights (nm), finite.
-    spacing : float
-        Distance between samples (nm).
-    height : float
-        Expected object height (nm); samples more than ``band * height`` above the
-        current baseline (and a guard of the same lateral size) count as object.
-    band : float
-        Fraction of ``height`` that separates substrate from object, in (0, 1).
-    iterations : int
-        Most refits; stops earlier once the substrate samples do not change.
-
-    Returns
-    -------
-    baseline : (n,) array
-        Substrate height under every sample (nm).
-    noise : float
-        Robust rms of the substrate samples about the baseline (nm).
-    """
-    z = _check_profile(profile)
-    spacing = number("spacing", spacing, positive=True)
-    height = number("height", height, positive=True)
-    if not 0 < band < 1:
-        raise ValueError(f"band must be in (0, 1), got {band}")
-    n = z.size
-    x = np.arange(n, dtype=float)
-    guard = math.ceil(band * height / spacing)
-    base = np.full(n, np.percentile(z, 2.0))
-    substrate = np.ones(n, bool)
-    for it in range(iterations):
-        sub = ~_dilate(z - base > band * height, guard)
-        if sub.sum() < 3:
-            break
-        if it and np.array_equal(sub, substrate):
-            break                           # the same samples: the fit would not change
-        xs = x[sub]
-        if xs.max() - xs.min() >= 0.1 * (n - 1):
-            slope, icpt = np.polyfit(xs, z[sub], 1)
-            new = icpt + slope * x
-        else:                               # too short a stretch to trust a tilt
-            new = np.full(n, np.median(z[sub]))
-        done = np.array_equal(sub, substrate)
-        base, substrate = new, sub
-        if done:
-            break
-    noise = _robust_std(z[substrate] - base[substrate]) if substrate.sum() >= 3 else 0.0
-    return base, noise
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
@@ -237,6 +168,32 @@ def _clear_end(y: np.ndarray, run: tuple[int, int], expected: float, level: floa
     return float(at), float(std), side
 
 
+def _between_saddles(y: np.ndarray, run: tuple[int, int], expected: float, h: float, noise: float,
+                     dip_limit: float) -> tuple[float, float, float, float, float] | None:
+    """The crossings of the object at ``expected`` within the bump ``run`` between the
+    deepest saddle on either side of it (see :attr:`Edges.inner`), or None where a side
+    has no saddle deeper than ``dip_limit``."""
+    i, j = run
+    seg = y[i:j + 1]
+    if seg.size < 3:
+        return None
+    k = min(max(round(expected / h) - i, 1), seg.size - 2)
+    dips = _dips(seg)
+    a, b = int(np.argmax(dips[:k])), k + 1 + int(np.argmax(dips[k + 1:]))
+    if min(dips[a], dips[b]) <= dip_limit:
+        return None
+    peak = float(seg[a:b + 1].max())
+    level = max(seg[a], seg[b]) + 0.5 * (peak - max(seg[a], seg[b]))
+    top = a + int(np.argmax(seg[a:b + 1]))
+    lo = a + int(np.nonzero(seg[a:top + 1] <= level)[0][-1])      # last sample below, left of the summit
+    hi = top + int(np.nonzero(seg[top:b + 1] <= level)[0][0])       # first one below, right of it
+    left, left_std = _crossing(y, i + lo, i + lo + 1, level, h, noise)
+    right, right_std = _crossing(y, i + hi, i + hi - 1, level, h, noise)
+    if not left < right:
+        return None
+    return float(left), float(right), float(left_std), float(right_std), float(level)
+
+
 def _crossing(y: np.ndarray, lo: int, hi: int, level: float, h: float,
               noise: float) -> tuple[float, float]:
     """Crossing between samples ``lo`` and ``hi = lo ± 1`` (``y[hi] > level >= y[lo]``).
@@ -277,7 +234,7 @@ def _crossing(y: np.ndarray, lo: int, hi: int, level: float, h: float,
 
 def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
                expected: float | None = None, noise_rms: float | None = None,
-               taller: float | None = TALLER) -> Edges:
+               taller: float | None = TALLER, substrate: tuple[float, float, float] | None = None) -> Edges:
     """The two crossings of an object of expected ``height`` on a scan line.
 
     Parameters
@@ -303,6 +260,14 @@ def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
         A bump whose summit is higher than ``taller * height`` plus three noise is
         another object (a taller neighbour the line runs into) and is never taken; None
         takes any bump.
+    substrate : (start, end, noise), optional
+        The substrate as other lines measured it: its height at the line's start and end
+        (nm, linear between) and the noise about it. Where the profile's own substrate
+        line lies more than the substrate band from it at ``expected``, the line saw no
+        substrate of its own (a rod's axis line whose ends both lie on particles beside
+        the rod: the dips between them, broadened by the tip, never reach it), and the
+        substrate is fitted from ``substrate`` instead (which, with its noise, stands
+        where no sample lies within the band of it).
 
     Returns
     -------
@@ -320,7 +285,14 @@ def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
         number("noise_rms", noise_rms, nonnegative=True)
     n = z.size
     h = length / (n - 1)
-    base, est = fit_baseline(z, h, height, band=min(0.15, 0.5 * fraction))
+    band = min(0.15, 0.5 * fraction)
+    base, est = fit_baseline(z, h, height, band=band)
+    if substrate is not None:
+        given = np.linspace(float(substrate[0]), float(substrate[1]), n)
+        k = min(max(round(expected / h), 0), n - 1)
+        if abs(base[k] - given[k]) > band * height:
+            base, est = fit_baseline(z, h, height, band=band, start=given)
+            est = est or float(substrate[2])
     noise = est if noise_rms is None else float(noise_rms)
     y = z - base
     level = fraction * height
@@ -333,8 +305,10 @@ def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
     dip_limit = max(MERGE_DIP * height, 8 * noise)
 
     def miss(reason: str, count: int, end: bool = False) -> Edges:
-        one = _clear_end(y, min(runs, key=distance), expected, level, h, noise, dip_limit) if end else None
-        return Edges(False, reason, None, None, None, None, None, level, noise, count, one)
+        run = min(runs, key=distance) if end else None
+        inner = _between_saddles(y, run, expected, h, noise, dip_limit) if end else None
+        one = _clear_end(y, run, expected, level, h, noise, dip_limit) if end and inner is None else None
+        return Edges(False, reason, None, None, None, None, None, level, noise, count, one, None, inner)
 
     if not runs:
         return miss("nothing above the level", 0)
@@ -353,4 +327,4 @@ def find_edges(profile, length: float, height: float, *, fraction: float = 0.5,
     right, right_std = _crossing(y, j + 1, j, level, h, noise)
     peak = float(y[i:j + 1].max())
     return Edges(True, "found", float(left), float(right), float(left_std), float(right_std),
-                 peak, level, noise, len(runs))
+                 peak, level, noise, len(runs), None, float(np.interp(0.5 * (left + right) / h, np.arange(n), base)))

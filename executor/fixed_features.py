@@ -33,7 +33,7 @@ from shapely.geometry.polygon import orient
 from nanoasm.instrument import HeightImage
 from nanoasm.param import number
 
-from .edges import _robust_std
+from .substrate import _robust_std
 from .feature_types import EdgeSite, Feature
 from .scan_lines import perp, wedge
 

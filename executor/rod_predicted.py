@@ -24,7 +24,8 @@ from dataclasses import replace
 
 from nanoasm.param import number
 
-from .rod_scan import Pattern, axis_through, crossing_t, finish_rod, is_rod, rod_after, rod_args
+from .rod_outline import finish_rod
+from .rod_scan import Pattern, axis_through, crossing_t, is_rod, rod_after, rod_args
 from .scan_lines import AXIS_PEAK, DEFAULT_OPTIONS, ScanOptions, axis, make_line, measure_line, perp, point, unit, \
     wedge
 

@@ -247,19 +247,20 @@ class LineOutcome:
         return self.line.at(self.edges.centre)
 
 
-def measure_line(line: ScanLine, expected: float, opts: ScanOptions
+def measure_line(line: ScanLine, expected: float, opts: ScanOptions, substrate=None
                  ) -> Generator[ScanLine, np.ndarray, LineOutcome]:
     """Ask for ``line`` (yield it), receive its profile, return the edges on it.
 
     ``expected`` is where the object should be (nm from ``line.a``); ``opts`` must be
-    :meth:`ScanOptions.resolved`. A profile of the wrong shape raises ValueError.
+    :meth:`ScanOptions.resolved`; ``substrate``: as :func:`find_edges` takes it. A
+    profile of the wrong shape raises ValueError.
     """
     profile = yield line
     z = np.asarray(profile, dtype=float)
     if z.shape != (line.n,):
         raise ValueError(f"profile for line {line.role} must have shape ({line.n},), got {z.shape}")
     edges = find_edges(z, line.length, opts.height, fraction=opts.fraction, expected=expected,
-                       noise_rms=opts.noise_rms, taller=opts.taller)
+                       noise_rms=opts.noise_rms, taller=opts.taller, substrate=substrate)
     return LineOutcome(line, edges)
 
 

@@ -232,11 +232,15 @@ def test_find_edges_rejects_bad_input_naming_it(kwargs, name):
 @given(z=arrays(np.float64, st.integers(5, 300),
                 elements=st.floats(-1e4, 1e4, allow_nan=False, allow_infinity=False)),
        length=st.floats(1.0, 1e4), height=st.floats(0.1, 1e3), fraction=st.floats(0.05, 0.95),
-       expected=st.floats(-1e4, 1e4))
+       expected=st.floats(-1e4, 1e4),
+       substrate=st.none() | st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4), st.floats(0.0, 10.0)))
 def test_any_finite_profile_gives_finite_edges_within_the_line(z, length, height, fraction,
-                                                                expected):
-    e = find_edges(z, length, height, fraction=fraction, expected=expected)
+                                                                expected, substrate):
+    e = find_edges(z, length, height, fraction=fraction, expected=expected, substrate=substrate)
     values = [e.level, e.noise]
+    if e.inner is not None:
+        assert 0.0 <= e.inner[0] < e.inner[1] <= length
+        values += list(e.inner)
     if e.found:
         assert 0.0 <= e.left < e.right <= length
         values += [e.left, e.right, e.left_std, e.right_std, e.peak, e.centre, e.centre_std]
@@ -492,6 +496,55 @@ def test_a_rod_whose_end_touches_a_particle_is_placed_by_its_other_end(gap, d_p)
         assert angle_err(result.angle, bodies[0].angle) < 1.0
         # the far end, if V saw it clear, measured the length; else the believed one stands
         assert result.length == pytest.approx(L, abs=3.0)
+
+
+@pytest.mark.parametrize("gap, d_p", [(40.0, 90.0), (25.0, 100.0), (45.0, 70.0), (30.0, 120.0)])
+def test_a_rod_between_two_particles_on_its_axis_is_placed_between_them(gap, d_p):
+    """The rods family, seed 5: a 647 x 69 nm rod was pushed into its slot between two
+    90 nm particles 40 nm beyond its ends, and the check scan (r_max 323 nm) reported it
+    missed. Line V along the rod ran from one particle over the rod onto the other: it saw
+    no substrate to level itself by, and the tip-broadened gaps never fell below half the
+    rod's height. The cross lines' substrate levels V; its crossings above both saddles
+    place the rod along its axis, at the believed length."""
+    rng = np.random.default_rng(int(gap * 10 + d_p))
+    L, d = 646.6, 69.0
+    for th in (0.0, 33.0, -80.0):
+        truth = MID + rng.uniform(-8, 8, 2)
+        a = axis(th)
+        gaps = gap + rng.uniform(-5, 5, 2)
+        bodies = [Body("r", "rod", tuple(truth), d, th + rng.uniform(-0.5, 0.5), L),
+                  Body("p", "particle", tuple(truth - a * (L / 2 + gaps[0] + d_p / 2)), d_p),
+                  Body("q", "particle", tuple(truth + a * (L / 2 + gaps[1] + d_p / 2)), d_p)]
+        for r_max in (323.0, 60.0):
+            result = run_pattern(rod_before(MID, th, L, d, r_max, measure_angle=True), scanner(bodies, rng))
+            assert result.found, (r_max, result.reason)
+            assert err(result, truth) < 4.0
+            assert angle_err(result.angle, bodies[0].angle) < 1.0
+            # measured where V saw both ends: a line ending on a neighbour's flank levels
+            # itself a little tilted (4.7 nm short at a 40 nm gap, 70 nm particles, r_max 60)
+            assert result.length == pytest.approx(L, abs=3.0 if result.length_std is None else 6.0)
+
+
+def test_a_line_without_substrate_of_its_own_is_levelled_by_the_one_given():
+    """A rod's plateau between two taller bumps that run off both ends of the line, on a
+    substrate 12 nm up and tilted: levelled by its own samples the line finds nothing; given the
+    substrate, the rod's crossings between the saddles are as far from its centre on
+    either side. A line with substrate of its own finds the same edges with it or without."""
+    s = np.linspace(0.0, 800.0, 801)
+    sub = 12.0 + 0.01 * s
+    rod = np.clip(np.minimum(s - 90.0, 710.0 - s), 0.0, None)
+    rod = np.minimum(rod * 3.0, 69.0)
+    z = sub + np.maximum(rod, np.maximum(sphere_profile(s, 50.0, 96.0), sphere_profile(s, 750.0, 96.0)))
+    alone = find_edges(z, 800.0, 69.0, expected=400.0)
+    assert not alone.found
+    given = find_edges(z, 800.0, 69.0, expected=400.0, substrate=(12.0, 20.0, 0.3))
+    assert not given.found and given.end is None and given.inner is not None
+    left, right, *_, level = given.inner
+    assert 0.5 * (left + right) == pytest.approx(400.0, abs=0.5)
+    assert 69.0 / 2 < level < 69.0
+    clean = sub + np.maximum(rod, 0.0)
+    assert find_edges(clean, 800.0, 69.0, expected=400.0, substrate=(12.0, 20.0, 0.3)) \
+        == find_edges(clean, 800.0, 69.0, expected=400.0)
 
 
 def test_a_particle_a_little_taller_than_the_rod_beside_it_is_not_a_cross_line_hit():
