@@ -168,20 +168,30 @@ def _clear_end(y: np.ndarray, run: tuple[int, int], expected: float, level: floa
     return float(at), float(std), side
 
 
+def _valley_floor(seg: np.ndarray, deep: np.ndarray, at: int, step: int) -> int:
+    """The lowest sample of the run of ``deep`` samples that ``at`` ends (walking ``step``)."""
+    stop = at
+    while 0 <= stop + step < seg.size and deep[stop + step]:
+        stop += step
+    lo, hi = sorted((at, stop))
+    return lo + int(np.argmin(seg[lo:hi + 1]))
+
+
 def _between_saddles(y: np.ndarray, run: tuple[int, int], expected: float, h: float, noise: float,
                      dip_limit: float) -> tuple[float, float, float, float, float] | None:
     """The crossings of the object at ``expected`` within the bump ``run`` between the
-    deepest saddle on either side of it (see :attr:`Edges.inner`), or None where a side
-    has no saddle deeper than ``dip_limit``."""
+    nearest saddle deeper than ``dip_limit`` on either side of it (see
+    :attr:`Edges.inner`; the deepest point of that valley), or None where a side has none."""
     i, j = run
     seg = y[i:j + 1]
     if seg.size < 3:
         return None
     k = min(max(round(expected / h) - i, 1), seg.size - 2)
-    dips = _dips(seg)
-    a, b = int(np.argmax(dips[:k])), k + 1 + int(np.argmax(dips[k + 1:]))
-    if min(dips[a], dips[b]) <= dip_limit:
+    deep = _dips(seg) > dip_limit
+    before, after = np.nonzero(deep[:k])[0], k + 1 + np.nonzero(deep[k + 1:])[0]
+    if not before.size or not after.size:
         return None
+    a, b = _valley_floor(seg, deep, int(before[-1]), -1), _valley_floor(seg, deep, int(after[0]), 1)
     peak = float(seg[a:b + 1].max())
     level = max(seg[a], seg[b]) + 0.5 * (peak - max(seg[a], seg[b]))
     top = a + int(np.argmax(seg[a:b + 1]))

@@ -542,6 +542,15 @@ def test_a_line_without_substrate_of_its_own_is_levelled_by_the_one_given():
     left, right, *_, level = given.inner
     assert 0.5 * (left + right) == pytest.approx(400.0, abs=0.5)
     assert 69.0 / 2 < level < 69.0
+    # a second particle beyond the first, the dip between them deeper than the rod's saddle:
+    # the saddle next to the rod bounds it, not the deepest one
+    short = np.minimum(np.clip(np.minimum(s - 250.0, 710.0 - s), 0.0, None) * 3.0, 69.0)
+    z2 = sub + np.maximum.reduce([short, sphere_profile(s, 95.0, 96.0), sphere_profile(s, 210.0, 96.0),
+                                  sphere_profile(s, 750.0, 96.0)])
+    twice = find_edges(z2, 800.0, 69.0, expected=480.0, substrate=(12.0, 20.0, 0.3))
+    assert twice.inner is not None
+    assert 0.5 * (twice.inner[0] + twice.inner[1]) == pytest.approx(480.0, abs=1.5)   # a kinked top
+    assert twice.inner[4] < 69.0
     clean = sub + np.maximum(rod, 0.0)
     assert find_edges(clean, 800.0, 69.0, expected=400.0, substrate=(12.0, 20.0, 0.3)) \
         == find_edges(clean, 800.0, 69.0, expected=400.0)
