@@ -14,6 +14,8 @@ rows, whose lever on the velocity is the longest).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import shapely
 
@@ -23,6 +25,20 @@ import shapely
 ROOMY_ENOUGH = 1000.0
 #: Picks of a stretch not found in a row before the other stretches come first.
 TRIES = 3
+
+#: An early reference (:func:`early_choice`) is scanned only when it is expected to
+#: shrink the σ (largest direction) of the drift since the scan began to this fraction
+#: or less,
+EARLY_GAIN = 0.8
+#: ... and only while that σ is above this, nm: below it, 3σ of where the layout's frame
+#: lies is within a slot's 20 nm tolerance with room for a push's error, and early
+#: references made the drift RMS of sparse and dense runs (σ 2.5-3.7 nm) up to 2.8 nm
+#: better or worse by chance, for one or two more local scans (seeds 1-10, 3 nm here).
+EARLY_FLOOR = 5.0
+#: Room (nm) beyond its lines' 3σ reach an early reference wants from its neighbours.
+EARLY_MARGIN = 60.0
+#: Variance (nm²) of a located centre's component, as the choice assumes it.
+EARLY_LOCATED_VAR = 4.0
 
 
 class Picks:
@@ -144,3 +160,32 @@ def gaps(belief, marks, cands) -> np.ndarray:
                     for j in walls.query(geom, predicate="dwithin", distance=ROOMY_ENOUGH + own)]
         out[i] = min(gap, default=np.inf)
     return out
+
+
+def early_choice(scan, now: float, cands, var: float):
+    """Of ``cands`` (``(pick, τ of its row, room nm)``), the one whose two components
+    measured ``now`` (s after the epoch) would shrink the largest σ of the drift since the
+    scan began (``scan``'s model) the most, among those whose room holds their lines' 3σ
+    reach and :data:`EARLY_MARGIN` (``var``: the variance, nm², a measured component
+    carries besides the located centre's): ``(σ before, σ expected after, pick)``, or
+    None when σ is below :data:`EARLY_FLOOR` or none shrinks it to :data:`EARLY_GAIN` of
+    itself."""
+    before = _largest_std(scan.offset_cov(now))
+    if before < EARLY_FLOOR:
+        return None
+    best = None
+    for pick, tau, room in cands:
+        if room < 3.0 * _largest_std(scan.between_cov(now, tau)) + EARLY_MARGIN:
+            continue
+        trial = scan.trial()
+        for e in ((1.0, 0.0), (0.0, 1.0)):
+            trial.measure(np.array(e), 0.0, now, tau, var + EARLY_LOCATED_VAR)
+        after = _largest_std(trial.offset_cov(now))
+        if best is None or after < best[1]:
+            best = (before, after, pick)
+    return best if best is not None and best[1] <= EARLY_GAIN * before else None
+
+
+def _largest_std(cov: np.ndarray) -> float:
+    """The largest standard deviation of a 2-D covariance, nm."""
+    return math.sqrt(max(float(np.linalg.eigvalsh(cov)[-1]), 0.0))

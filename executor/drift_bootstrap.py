@@ -11,6 +11,8 @@ import math
 
 import numpy as np
 
+from nanoasm.drift import gate_threshold
+
 from . import bootstrap_picks, creep_terms, tear_doubles
 from .context import RunContext
 from .drift_steps import emit_drift, scan_feature_lines
@@ -47,6 +49,8 @@ TEAR_PROBES = 6
 #: nm for a 90 nm particle), and where the side is wrong a neighbour there is taken for it
 #: (scale300 seed 3, a tear at 1096 s: one 125 nm from the wrong spot put it at 1041 s).
 TEAR_ROOM = 250.0
+#: More references :func:`_earliest_rows` may scan for the drift since the scan began.
+EARLY_REFERENCES = 2
 #: Variance (nm²) of a component a bootstrap reference measures: the located centre's
 #: and the full scan's (2 nm each), and what the model leaves (the random walk, creep).
 BOOTSTRAP_VAR = 16.0
@@ -150,6 +154,7 @@ def bootstrap(ctx: RunContext):
         yield Msg("event", (f"bootstrap: {again} is {kept} imaged again by the tear of the full scan ({d:.1f} nm "
                             f"apart with the jump taken out): forgotten",))
     yield from _narrow_tear(ctx, picks, take)
+    yield from _earliest_rows(ctx, picks, take)
     used, t_last = state["used"], state["t_last"]
     yield from _jump_event(drift)
     t_end = yield Msg("clock")
@@ -265,6 +270,59 @@ def _narrow_tear(ctx: RunContext, picks, take):
             f"seen on the rows {'after' if since < tau else 'before'} it"
         yield Msg("event", (f"bootstrap: {rid}, on a row of {seen_t:.0f} s between references' rows of "
                             f"{a + ep:.0f} and {b + ep:.0f} s around the tear, {side}",))
+
+
+def _earliest_rows(ctx: RunContext, picks, take):
+    """Where no reference lies on the full scan's first rows, the drift over them is the
+    model's extrapolation, and with it where the layout's frame (the scanner's at the
+    scan's start) now lies: references of rows 255-685 s of an 800 s scan left the
+    drift's steady change at its prior and the estimate 13 nm off from the scan's end on
+    (device seed 5). Once the model places every row closely, the unscanned particle,
+    corner or rod (a rods-only scene's first rows hold nothing else: rodgap seed 10, no
+    reference before 392 s of 1000) that would shrink the uncertainty of the drift since
+    the start the most is scanned with short lines (no widened search), where its room
+    allows them, while one shrinks that σ enough (:func:`~.bootstrap_picks.early_choice`),
+    up to :data:`EARLY_REFERENCES`; one the others contradict is left out."""
+    drift = ctx.drift
+    scan, ep = drift.scan, drift.epoch
+    rods = [("object", o.id, ctx.belief.seen[o.id].t) for o in ctx.belief.objects.values()
+            if o.kind == "rod" and not o.edge]
+    for _ in range(EARLY_REFERENCES):
+        if not drift.velocity_known:
+            return
+        t = yield Msg("clock")
+        now = t - ep
+        cands = [p for s in picks.stretches for p in s] + rods
+        room = bootstrap_picks.gaps(ctx.belief, ctx.landmarks, cands)
+        best = bootstrap_picks.early_choice(scan, now, [(c, c[2] - ep, r) for c, r in zip(cands, room)],
+                                            BOOTSTRAP_VAR)
+        if best is None:
+            return
+        before, after, pick = best
+        picks.take(pick)
+        rods = [c for c in rods if c != pick]
+        scanned = yield from _bootstrap_rows(ctx, *pick, widen=False)
+        if scanned is None:
+            continue
+        chi2 = _disagreement(ctx, pick, scanned)
+        if chi2 > gate_threshold(len(scanned[0]), BOOTSTRAP_GATE):
+            yield Msg("event", (f"bootstrap: {pick[1]} disagrees with the other references (χ² {chi2:.0f}): "
+                                f"left out",), {"level": "warn"})
+            continue
+        take(pick[0], pick[1], scanned)
+        _jumped(scan)
+        yield Msg("event", (f"bootstrap: {pick[1]}, on a row of {pick[2]:.0f} s, scanned again for the drift "
+                            f"since the full scan began (σ {before:.1f} nm, expected {after:.1f})",))
+
+
+def _disagreement(ctx: RunContext, pick, scanned) -> float:
+    """χ² of a reference scanned again (:func:`_bootstrap_rows`) against the others' model."""
+    trial = ctx.drift.scan.trial()
+    rows, t, _ = scanned
+    lam1 = ctx.drift.filter.creep.tau_sensitivity(t - ctx.drift.epoch)
+    for n, z, tau1, tau0, creep1, var in rows:
+        trial.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1, key=pick[:2])
+    return trial.disagreement(pick[:2])
 
 
 def _spots_room(ctx: RunContext, ids: list, jump: np.ndarray) -> dict:
