@@ -31,9 +31,10 @@ TRIES = 3
 #: or less,
 EARLY_GAIN = 0.8
 #: ... and only while that σ is above this, nm: below it, 3σ of where the layout's frame
-#: lies is within a slot's 20 nm tolerance with room for a push's error, and early
-#: references made the drift RMS of sparse and dense runs (σ 2.5-3.7 nm) up to 2.8 nm
-#: better or worse by chance, for one or two more local scans (seeds 1-10, 3 nm here).
+#: lies is within a slot's 20 nm tolerance with room for a push's error, and with 3 nm
+#: here early references changed the drift RMS of the sparse and dense runs they were
+#: scanned in (the filter's σ after the bootstrap 2.4-3.8 nm) by -2.0 to +2.8 nm, for
+#: one or two more local scans (seeds 1-10).
 EARLY_FLOOR = 5.0
 #: Room (nm) beyond its lines' 3σ reach an early reference wants from its neighbours.
 EARLY_MARGIN = 60.0

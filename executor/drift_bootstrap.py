@@ -93,11 +93,8 @@ def bootstrap(ctx: RunContext):
     def take(kind, rid, scanned, key=None):
         """Measure the model with a reference scanned again (:func:`_bootstrap_rows`),
         kept under ``key`` (by default ``(kind, id)``)."""
-        rows, t, seen = scanned
-        lam1 = drift.filter.creep.tau_sensitivity(t - drift.epoch)   # every move's, per unit λ
-        for n, z, tau1, tau0, creep1, var in rows:
-            drift.scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1,
-                               key=key or (kind, rid))
+        _, t, seen = scanned
+        _measure(drift, drift.scan, scanned, key or (kind, rid))
         if seen is not None:
             seen_objects[rid] = seen
         picks.found()
@@ -304,7 +301,9 @@ def _earliest_rows(ctx: RunContext, picks, take):
         scanned = yield from _bootstrap_rows(ctx, *pick, widen=False)
         if scanned is None:
             continue
-        chi2 = _disagreement(ctx, pick, scanned)
+        trial = scan.trial()                    # against the others' model
+        _measure(drift, trial, scanned, pick[:2])
+        chi2 = trial.disagreement(pick[:2])
         if chi2 > gate_threshold(len(scanned[0]), BOOTSTRAP_GATE):
             yield Msg("event", (f"bootstrap: {pick[1]} disagrees with the other references (χ² {chi2:.0f}): "
                                 f"left out",), {"level": "warn"})
@@ -315,14 +314,13 @@ def _earliest_rows(ctx: RunContext, picks, take):
                             f"since the full scan began (σ {before:.1f} nm, expected {after:.1f})",))
 
 
-def _disagreement(ctx: RunContext, pick, scanned) -> float:
-    """χ² of a reference scanned again (:func:`_bootstrap_rows`) against the others' model."""
-    trial = ctx.drift.scan.trial()
+def _measure(drift, scan, scanned, key) -> None:
+    """Measure ``scan`` (the drift's scan model, or a trial copy) with a reference scanned
+    again (:func:`_bootstrap_rows`), its components kept under ``key``."""
     rows, t, _ = scanned
-    lam1 = ctx.drift.filter.creep.tau_sensitivity(t - ctx.drift.epoch)
+    lam1 = drift.filter.creep.tau_sensitivity(t - drift.epoch)   # every move's, per unit λ
     for n, z, tau1, tau0, creep1, var in rows:
-        trial.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1, key=pick[:2])
-    return trial.disagreement(pick[:2])
+        scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1, key=key)
 
 
 def _spots_room(ctx: RunContext, ids: list, jump: np.ndarray) -> dict:

@@ -13,7 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from nanoasm.executor.belief import Belief, Seen
-from nanoasm.executor.bootstrap_picks import EARLY_GAIN, ROOMY_ENOUGH, TRIES, Picks, early_choice, gaps
+from nanoasm.executor.bootstrap_picks import (EARLY_FLOOR, EARLY_GAIN, ROOMY_ENOUGH, TRIES, Picks, early_choice,
+                                              gaps)
 from nanoasm.executor.scan_drift import ScanDrift
 from nanoasm.world.environment import EnvObject, EnvObstacle, Environment
 
@@ -138,30 +139,34 @@ def _late_rows_model(rows=(500.0, 560.0, 620.0, 680.0), now=810.0, seed=0) -> Sc
 
 def test_a_first_rows_reference_is_added_where_the_drift_since_the_start_is_extrapolated():
     """References of rows 500-680 s of an 800 s scan leave the drift since the scan began
-    to the model's extrapolation (its steady change at the prior): a roomy particle of the
-    first rows shrinks its σ the most and is chosen, one of the first rows without room
-    for its lines is not, and a late row's adds little. Measured, it shrinks σ as expected."""
+    to the model's extrapolation (its steady change at the prior; σ 13.5 nm): a roomy
+    particle of the first rows shrinks its σ the most and is chosen, one of the first rows
+    without room for its lines is not, and a late row's alone is not worth it (σ to 13.4).
+    Measured, the chosen one shrinks σ as expected, below :data:`EARLY_FLOOR` (4.9 nm): no
+    more is chosen then."""
     sd = _late_rows_model()
     now = 840.0
     cov0 = sd.cov.copy()
     cands = [(("object", "late", 650.0), 650.0, 2000.0), (("object", "early", 60.0), 60.0, 2000.0),
              (("object", "crowded", 20.0), 20.0, 30.0)]
+    assert early_choice(sd, now, cands[:1], 16.0) is None   # a late row's: too little
     before, after, pick = early_choice(sd, now, cands, 16.0)
     assert pick[1] == "early"
     assert np.array_equal(sd.cov, cov0)                  # tried on a copy
-    assert before > 5.0 and after <= EARLY_GAIN * before
+    assert before > EARLY_FLOOR and after <= EARLY_GAIN * before
     for e in np.eye(2):
         sd.measure(e, float(e @ (np.array([0.3, -0.1]) * (now - 60.0))), now, 60.0, 20.0)
     got = math.sqrt(np.linalg.eigvalsh(sd.offset_cov(now))[-1])
     assert got == pytest.approx(after, rel=1e-6)
-    assert early_choice(sd, now, cands[:1], 16.0) is None   # a late row's: too little
+    assert got < EARLY_FLOOR and early_choice(sd, now, cands, 16.0) is None
 
 
 def test_no_early_reference_where_the_rows_are_spanned_or_none_has_room():
-    """Seven references from the first rows to the last: σ 3.3 nm, which one more from the
-    first rows would not shrink to 0.8 of itself; and a first-rows particle 40 nm from a
-    neighbour is not taken for lines reaching 3σ and the margin."""
+    """Seven references from the first rows to the last: σ 3.3 nm, below
+    :data:`EARLY_FLOOR`; and a first-rows particle 40 nm from a neighbour is not taken
+    for lines reaching 3σ (35 nm) and the margin."""
     sd = _late_rows_model(rows=(5.0, 100.0, 250.0, 400.0, 550.0, 700.0, 790.0))
+    assert math.sqrt(np.linalg.eigvalsh(sd.offset_cov(840.0))[-1]) < EARLY_FLOOR
     cands = [(("object", "early", 5.0), 5.0, 2000.0)]
     assert early_choice(sd, 840.0, cands, 16.0) is None
     crowded = [(("object", "early", 60.0), 60.0, 40.0)]
