@@ -28,8 +28,9 @@ from scipy import ndimage
 from . import creep_terms
 from .context import RunContext
 from .engine import Msg
+from .jump_recheck import recheck
 from .registration import register
-from .scan_steps import locate, scan_window
+from .scan_steps import scan_window
 
 #: Pixels within this distance (nm) beyond an object's footprint are masked when it moved.
 MASK_MARGIN = 40.0
@@ -150,7 +151,7 @@ def relocalise(ctx: RunContext, why: str):
                             f"(± {math.sqrt(cov[0, 0]):.1f})",))
         if est.emits:
             yield Msg("emit", ("drift", est.doc(t_mid)))
-        yield from _recheck(ctx, _ambiguous(ctx, confirmed, since), shift)
+        yield from recheck(ctx, confirmed, since, shift)
         return True
     t_end = yield Msg("clock")
     ctx.ledger.purposes["relocalise"] += t_end - t_start
@@ -231,46 +232,3 @@ def _correct_beliefs(ctx: RunContext, shift: np.ndarray, since: float | None) ->
             ctx.belief.objects[oid] = replace(o, at=(float(at[0]), float(at[1])))
             ctx.corrected = True
 
-
-def _ambiguous(ctx: RunContext, confirmed: float | None, since: float | None) -> list[str]:
-    """Objects seen after the estimate was last confirmed and before the first reference
-    it failed (``since``): the drift jumped in between, before or after they were put
-    into the layout frame; which, no scan of theirs can tell."""
-    if since is None or confirmed is None:
-        return []
-    return sorted(oid for oid, seen in ctx.belief.seen.items()
-                  if confirmed < seen.t < since and oid not in ctx.belief.lost and oid in ctx.belief.objects)
-
-
-def _recheck(ctx: RunContext, ambiguous: list[str], shift: np.ndarray):
-    """Locate each of the ``ambiguous`` objects where the relocalisation's correction
-    (``shift``: new less old offset) puts it, else where it was believed (its drift then
-    already right), searching around there if need be; the belief keeps what a scan
-    found. One found nowhere is left where it was believed, for the next scan of it to
-    search again. A place another believed object already takes is not tried: what a
-    scan found there would be that object."""
-    for oid in ambiguous:
-        o = ctx.belief[oid]
-        for at, which in ((np.asarray(o.at, float) - shift, "the correction"), (o.at, "the old estimate")):
-            if taken(ctx, oid, at) and which == "the correction":
-                continue
-            ctx.belief.objects[oid] = replace(o, at=(float(at[0]), float(at[1])))
-            found = yield from locate(ctx, oid, widen=which == "the old estimate")
-            if found is not None:
-                scanner, cov, t = found[:3]
-                seen = ctx.to_layout(scanner, t)
-                ctx.observe(oid, seen.at, t, cov, angle=seen.angle)
-                ctx.corrected = True
-                yield Msg("event", (f"{oid}: seen while the drift jumped; found where {which} put it",))
-                break
-        else:
-            ctx.belief.objects[oid] = o
-
-
-def taken(ctx: RunContext, oid: str, at) -> bool:
-    """Whether another believed object (not lost) overlaps ``oid`` placed at ``at`` by
-    more than half the smaller's diameter."""
-    me = ctx.belief[oid]
-    return any(math.dist(o.at, at) < me.radius + o.radius - 0.5 * min(me.diameter, o.diameter)
-               for other, o in ctx.belief.objects.items()
-               if other != oid and other not in ctx.belief.lost and o.kind == "particle" and me.kind == "particle")

@@ -44,7 +44,8 @@ from .drift_steps import take_reference
 from .edge_slots import edge_line, edge_pushes, edge_slots
 from .engine import Msg
 from .progress_docs import PROGRESS, ProgressDoc
-from .relocalise import keep_track, taken
+from .jump_recheck import taken
+from .relocalise import keep_track
 from .scan_steps import locate, scan_window
 from .summary import summary
 from .verdict import check_again

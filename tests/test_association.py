@@ -13,13 +13,15 @@ from hypothesis import strategies as st
 
 from simkit import particle, world
 
+from nanoasm.bodies import Body
 from nanoasm.executor.association import Candidate, associate, size_ok
 from nanoasm.executor.belief import Belief
 from nanoasm.executor.context import RunContext
 from nanoasm.executor.documents import EVENT
 from nanoasm.executor.engine import RunEngine
 from nanoasm.executor.estimators import NoDrift
-from nanoasm.executor.references import References
+from nanoasm.executor.jump_recheck import recheck
+from nanoasm.executor.references import References, swept_area
 from nanoasm.executor.scan_steps import locate
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.world.environment import EnvObject, Environment
@@ -245,3 +247,27 @@ def test_no_image_where_the_estimate_does_not_know_the_particle_to_within_its_di
     # 150 nm of uncertainty: an image would take minutes, and several particles could be a
     v, events = _check_wedged((1006.0, 1992.0), 60.0, r_max=150.0)
     assert not any("an image of" in e for e in events)
+
+
+def test_after_a_jump_a_particle_shoved_by_a_push_is_not_taken_for_the_pushed_one():
+    """The drift jumped by (+20, -300) nm before a's last push (seen at 5 s, between the
+    estimate's last confirmation at 1 s and the first reference it failed at 10 s): the
+    tip went 300 nm below its path, over q (in its slot at y = 2400), and shoved it to
+    where a's correction puts a. a truly lies where it was believed (pushed there before
+    the jump). q, on the push's corrected path, is looked for first and is not in its
+    place; so a is looked for where it was believed, and q where the correction put a
+    (the old rule took q's particle for a: a moved onto it, q left where it was not)."""
+    truth = [particle((2000, 2600), d=90.0, id="A"), particle((2020, 2300), d=90.0, id="Q")]
+
+    def step(ctx):
+        ctx.observe("a", (2000.0, 2600.0), 5.0, np.eye(2) * 4.0)
+        path = [(1980.0, 2800.0), (2000.0, 2650.0)]
+        end = Body("a", "particle", (2000.0, 2600.0), 90.0)
+        ctx.refs.pushes.append(swept_area("a", 4.0, path, [end], tip_radius=10.0))
+        yield from recheck(ctx, 1.0, 10.0, np.array([-20.0, 300.0]))
+
+    _, ctx, events = _run(truth, {"a": (2000.0, 2600.0, 90.0), "q": (2000.0, 2400.0, 90.0)}, step, r_max=30.0)
+    assert any(e.startswith("q is not where it was believed") for e in events), events
+    assert math.dist(ctx.belief["a"].at, (2000.0, 2600.0)) < 5.0, events
+    assert math.dist(ctx.belief["q"].at, (2020.0, 2300.0)) < 5.0, events
+    assert "q" not in ctx.belief.lost and "a" not in ctx.belief.lost
