@@ -58,6 +58,13 @@ def summary(asm) -> RunSummary:
             unfilled.append(Unfilled(a.target, f"object {a.object!r} was lost during the run"))
         else:
             assignment.append(a)
+    # a slot the check found filled by an object the plan had not assigned to it
+    # (verdict._named): that object is what fills it
+    held, used = {a.target for a in assignment}, {a.object for a in assignment}
+    for v in getattr(asm, "slots", ()):
+        if v.state == "filled" and v.object is not None and v.target not in held and v.object not in used:
+            assignment.append(Assignment(v.target, v.object))
+            unfilled = [u for u in unfilled if u.target != v.target]
     led, drift = ctx.ledger, ctx.drift
     return RunSummary(asm.env, asm.first_plan, ctx.belief, tuple(assignment), tuple(unfilled), led.pushed,
                       led.count(), dict(led.times), dict(led.wall), led.drift, led.failures, drift.epoch,

@@ -7,7 +7,9 @@ uncertainty) looks for an object. A slot is ``filled`` when an object of its kin
 within the layout's tolerance (position, size from the object's height, a rod's angle
 and length); otherwise ``missed`` when an object was assigned to it, else ``unfilled``.
 ``error`` is the measured centre error (nm), None when nothing was found there. An
-object found in its slot is observed there (the belief ends as the scans saw it). What
+object found in its slot is observed there (the belief ends as the scans saw it); in a
+slot no object is assigned to, the particle found is named where the belief can tell
+which it is (:func:`_named`), and the report's assignment then holds it. What
 a particle slot's lines find on a believed rod's body is that rod, not a particle (its
 thickness would pass the size check); a line that a neighbour's edge cut is tried again,
 turned, and a sighting wider than a sphere of its height is no particle. Where a
@@ -30,6 +32,7 @@ from .apex_check import CROWDED, ROUND, apex_cov, image_check
 from .context import RunContext
 from .drift_steps import suspect_drift
 from .engine import Msg
+from .jump_recheck import taken
 from .local_scan import particle_before, rod_before
 from .scan_steps import clear_direction, run_pattern
 from .slot_verdict import STATES, SlotVerdict
@@ -153,7 +156,7 @@ def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous
         for k in tour(start, [layout.targets[k].at for k in todo]):
             target = layout.targets[todo[k]]
             obj = assigned.get(target.id)
-            verdict = yield from _check_slot(ctx, target, obj, layout.tolerance)
+            verdict = yield from _check_slot(ctx, target, obj, layout.tolerance, held=set(assigned.values()))
             out[todo[k]] = verdict
             if again or verdict.state != "missed":
                 continue
@@ -210,8 +213,10 @@ def check_again(ctx: RunContext, layout: Layout, assignment, verdicts) -> Any:
     return out
 
 
-def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
-    """The check scan of one slot (plan stub): its :class:`SlotVerdict`."""
+def _check_slot(ctx: RunContext, target, obj: str | None, tol, held=frozenset()) -> Any:
+    """The check scan of one slot (plan stub): its :class:`SlotVerdict`. A slot no object
+    is assigned to that the scan finds filled is filled by the object :func:`_named`
+    (``held``: the objects other slots are assigned)."""
     t = yield Msg("clock")
     off = ctx.offset(t)
     reach = tol.position + ctx.r_max(t)
@@ -280,12 +285,46 @@ def _check_slot(ctx: RunContext, target, obj: str | None, tol) -> Any:
                                 f"not taken for a particle",), {"level": "warn"})
         elif good:
             state = "filled"
+            if obj is None and target.kind == "particle":
+                obj = yield from _named(ctx, target, centre, (t_scan, cov), tol, held)
         if rod is None and (good or error > tol.position) and obj is not None \
                 and obj in ctx.belief.objects and obj not in ctx.belief.lost \
                 and math.dist(ctx.belief[obj].at, centre) <= reach + tol.position:
             cov = cov if cov is not None else np.eye(2) * 4.0
             ctx.observe(obj, centre, t_scan, cov, angle=res.angle if target.kind == "rod" else None)
     return SlotVerdict(target.id, obj, state, error)
+
+
+def _named(ctx: RunContext, target, centre, seen, tol, held) -> Any:
+    """The particle an unassigned slot's check found at ``centre`` (layout frame; ``seen``:
+    the sighting's time and covariance) is, or None (plan stub): a believed particle of
+    the slot's size, assigned to no other slot (``held``), within its search radius of
+    the sighting; else the particle of that size the belief has lost, or places on
+    another believed particle (one of the two is not there), nearest the sighting within
+    the lost-object search's reach (as a survey names what no believed object explains).
+    The object is observed there. A jump that struck as a push ended (allpushed seed 1,
+    300 nm at 750 s) left a particle in its slot and its after-scan in the stale frame,
+    which put it onto its neighbour's place: its slot unassigned by the replan and
+    reported filled by no object, the report's assignment one short."""
+    t, cov = seen
+    fits = [(oid, o) for oid, o in ctx.belief.objects.items()
+            if o.kind == "particle" and oid not in held and oid not in ctx.ledger.given_up
+            and abs(o.diameter - target.diameter) <= tol.size * target.diameter]
+    near = sorted((math.dist(o.at, centre), oid) for oid, o in fits if oid not in ctx.belief.lost
+                  and math.dist(o.at, centre) <= ctx.r_max(t, oid) + tol.position)
+    doubtful = sorted((math.dist(o.at, centre), oid) for oid, o in fits
+                      if (oid in ctx.belief.lost or taken(ctx, oid, o.at))
+                      and math.dist(o.at, centre) <= ctx.options.lost_radius)
+    if not (near or doubtful):
+        return None
+    d, oid = (near or doubtful)[0]
+    why = ("lost" if oid in ctx.belief.lost else "believed on another particle") if not near else ""
+    ctx.belief.lost.discard(oid)
+    ctx.observe(oid, centre, t, cov if cov is not None else np.eye(2) * 4.0)
+    yield Msg("event", (f"slot {target.id}: filled by {oid}, no slot's object, " + (
+        f"{why}, {d:.0f} nm from where it was last believed" if why else f"{d:.0f} nm from where it was believed"),),
+              {"level": "warn"})
+    return oid
 
 
 def _by_image(ctx: RunContext, target, reach: float, tol, why: str) -> Any:

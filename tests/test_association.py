@@ -271,3 +271,38 @@ def test_after_a_jump_a_particle_shoved_by_a_push_is_not_taken_for_the_pushed_on
     assert math.dist(ctx.belief["a"].at, (2000.0, 2600.0)) < 5.0, events
     assert math.dist(ctx.belief["q"].at, (2020.0, 2300.0)) < 5.0, events
     assert "q" not in ctx.belief.lost and "a" not in ctx.belief.lost
+
+
+@pytest.mark.parametrize("case", ["lost", "believed", "on another", "wrong size", "held", "far"])
+def test_an_unassigned_slot_found_filled_names_the_particle_in_it(case):
+    """A slot no object is assigned to, found filled: by the believed particle of its
+    size within that particle's search radius, else by the one of its size the belief
+    has lost or places on another particle, last believed nearest (observed there);
+    never by one another slot holds or of another size, nor by one believed 150 nm off
+    with no doubt on it (the slot is filled by no named object then)."""
+    from nanoasm.cad.layout import Layout
+    from nanoasm.executor.verdict import check_slots
+    from nanoasm.planner.plan import Assignment
+
+    layout = Layout((4000.0, 4000.0), (Body("s1", "particle", (1000.0, 2000.0), 90.0),
+                                       Body("s2", "particle", (2500.0, 2000.0), 90.0)))
+    truth = [particle((1003, 2002), d=90.0, id="A"), particle((2500, 2000), d=90.0, id="B")]
+    at = {"believed": (1010.0, 2000.0), "held": (1010.0, 2000.0)}.get(case, (1150.0, 2000.0))
+    believed = {"a": (*at, 50.0 if case == "wrong size" else 90.0), "b": (2500.0, 2000.0, 90.0)}
+    if case == "on another":
+        believed["c"] = (1170.0, 2000.0, 90.0)
+    pairs = (Assignment("s2", "b"),) if case != "held" else (Assignment("s2", "a"),)
+
+    def step(ctx):
+        if case in ("lost", "wrong size"):
+            ctx.belief.lose("a")
+        return (yield from check_slots(ctx, layout, pairs))
+
+    (v1, _), ctx, events = _run(truth, believed, step, r_max=30.0)
+    assert v1.state == "filled", events
+    if case in ("lost", "believed", "on another"):
+        assert v1.object == "a" and "a" not in ctx.belief.lost
+        assert math.dist(ctx.belief["a"].at, (1003.0, 2002.0)) < 5.0
+        assert any(e.startswith("slot s1: filled by a") for e in events), events
+    else:
+        assert v1.object is None

@@ -205,6 +205,21 @@ def test_an_object_lost_in_a_drift_jump_is_looked_for_where_its_pushes_went():
     assert sum(t.startswith("survey ") for t in events.texts) <= repair.MAX_WINDOWS
 
 
+@pytest.mark.parametrize("seed, sign", [(1, "slot s5: filled by o6"), (9, "survey 2")])
+def test_after_a_drift_jump_the_report_names_the_particle_in_each_slot(seed, sign):
+    """allpushed, the jump at 750 s (``bench_drift_refs.py``'s jump case): every slot
+    filled in truth, and by the particles the report's assignment names. Seed 1: the
+    jump struck as o6's push into s5 ended, its after-scan put it onto o7's place and the
+    replan left s5 to no object; the check finds s5 filled and names o6, believed on
+    another particle (the report's assignment was 8 of 9). Seed 9: the survey took a
+    particle just pushed into its slot for the lost o8 and o8 for it, by plain distance;
+    relative to their gates it does not (7 of 9 with ``jump_recheck`` alone)."""
+    out, layout, events = _allpushed_jump(seed, 750.0)
+    assert any(t.startswith(sign) for t in events.texts), events.texts
+    slots = {t.id for t in layout.targets}
+    assert set(out.truly_filled) == slots and set(out.filled) == slots and not out.disagreements
+
+
 def test_no_repair_round_when_rounds_are_off():
     """allpushed seed 1, the jump at 700 s (the run of the test above): with repair rounds
     every slot is filled, without them 8 of 9, and the run says so. (Seed 2 at 750 s before
