@@ -221,8 +221,30 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
     ``pivot_offsets``: rods' pivot offsets (fraction of the length, along each rod's
     ``angle`` in ``env``) as a run has learnt them; the last pushes into a slot use them.
     Deterministic for a given input and ``options.seed``.
+
+    The order of the moves comes from their straight corridors
+    (:func:`~nanoasm.planner.sequence.order`), which cannot see a rod's real way in, round
+    an electrode and through a gap: a rod slot left with no path after particle slots
+    were filled is planned again with the rods first, and the plan that fills more slots
+    is kept (``mixed`` seed 5: its rod's way lay between the four particle slots of the
+    gap, filled before it; rods first, the plan fills every slot).
     """
     options = options or PlanOptions()
+    t0 = time.perf_counter()
+    plan, stats, late = _plan(layout, env, options, progress, pivot_offsets, rods_first=False)
+    if late:
+        again, stats2, _ = _plan(layout, env, options, progress, pivot_offsets, rods_first=True)
+        if len(again.assignment) > len(plan.assignment):
+            plan, stats = again, stats2
+    stats.wall_time = time.perf_counter() - t0
+    return plan, stats
+
+
+def _plan(layout: Layout, env: Environment, options: PlanOptions, progress: Progress | None,
+          pivot_offsets: dict[str, float] | None, rods_first: bool) -> tuple[Plan, PlanStats, bool]:
+    """One plan (:func:`plan_assembly`), the rods' fills first (after the parkings) if
+    ``rods_first``; and whether a rod slot was left with no path after a particle slot
+    was filled."""
     t0 = time.perf_counter()
     s = _Session(layout, env, options)
     s.rods.offsets = dict(pivot_offsets or {})
@@ -232,11 +254,15 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
                      held=[o for o in env.objects if o.id in s.fixed_ids])
     efforts = {t: effort(s.targets[t], s.objects[o]) for t, o in matching.moves}
     nodes, blocked = order(matching.moves, s.targets, s.objects, s.fixed_ids, options.clearance, efforts)
+    if rods_first:
+        rods = [n for n in nodes if n[0] == "fill" and s.targets[n[1]].kind == "rod"]
+        nodes = [n for n in nodes if n[0] == "park"] + rods + [n for n in nodes if n[0] != "park" and n not in rods]
     object_of = dict(matching.moves)
     for _, o in matching.staying:
         s.placed.add(o)
 
     done: list[tuple[str, str]] = []
+    late = False                    # a rod slot with no path after a particle slot was filled
     unfilled = list(matching.unfilled) + [Unfilled(t, why) for t, why in on_obstacle.items()]
     unfilled += [Unfilled(t, f"slot is held by {s.objects[h].kind} {h!r}, which cannot be pushed")
                  for t, h in sorted(blocked.items())]
@@ -264,6 +290,7 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
             done.append((key, spare))
         else:
             unfilled.append(Unfilled(key, f"no path for {object_of[key]!r}"))
+            late = late or (target.kind == "rod" and any(s.targets[t].kind == "particle" for t, _ in done))
     if progress:
         progress(len(nodes), len(nodes))
 
@@ -274,4 +301,4 @@ def plan_assembly(layout: Layout, env: Environment, options: PlanOptions | None 
                 tuple(unfilled), layout.registration)
     s.stats.moves = len(done)
     s.stats.wall_time = time.perf_counter() - t0
-    return plan, s.stats
+    return plan, s.stats, late

@@ -159,3 +159,20 @@ def test_an_obstacle_whose_rows_a_torn_scan_moved_across_each_other_stays_a_vali
     assert ring.is_valid and all(ring.buffer(1e-6).contains(shapely.Point(p)) for p in raw)
     (steady,) = unskewed_obstacles((pad,), _Drifting(), row_time)   # a valid ring is kept as it is
     assert len(steady.polygon) == len(pad.polygon)
+
+
+def test_a_rod_whose_way_the_gaps_particle_slots_would_bar_is_planned_first():
+    """mixed seed 5: the order from straight corridors put the four particle slots in the
+    gap between the electrodes before the rod slot beyond it; filled, they barred the
+    rod's way (its zigzag stuck among them, 'no path', 4 of 5 slots on every run). A rod
+    slot left with no path after particle slots were filled is planned again with the
+    rods first: every slot filled, the rod's too, and the verdict the truth."""
+    from nanoasm.dryrun import dry_run
+    from nanoasm.executor.strategy import ExecOptions
+    from nanoasm.world.families import family_case
+
+    scene, layout = family_case("mixed", 5)
+    out = dry_run(scene, layout, options=ExecOptions(strategy="full"))
+    assert not out.summary.plan.unfilled, out.summary.plan.unfilled
+    slots = {t.id for t in layout.targets}
+    assert set(out.truly_filled) == slots and set(out.filled) == slots and not out.disagreements
