@@ -3,6 +3,7 @@ well each object was last seen."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -70,6 +71,17 @@ class Belief:
 
     def lose(self, object_id: str) -> None:
         self.lost.add(object_id)
+
+    def taken(self, object_id: str, at) -> bool:
+        """Whether another believed particle (not lost) overlaps particle ``object_id``
+        placed at ``at`` by more than half the smaller's diameter: two objects cannot be
+        there."""
+        me = self.objects[object_id]
+        if me.kind != "particle":
+            return False
+        return any(math.dist(o.at, at) < me.radius + o.radius - 0.5 * min(me.diameter, o.diameter)
+                   for other, o in self.objects.items()
+                   if other != object_id and other not in self.lost and o.kind == "particle")
 
     def forget(self, object_id: str) -> None:
         """``object_id`` was never an object of its own (another imaged twice): gone."""

@@ -171,7 +171,7 @@ def early_choice(scan, now: float, cands, var: float):
     carries besides the located centre's): ``(σ before, σ expected after, pick)``, or
     None when σ is below :data:`EARLY_FLOOR` or none shrinks it to :data:`EARLY_GAIN` of
     itself."""
-    before = _largest_std(scan.offset_cov(now))
+    before = early_sigma(scan, now)
     if before < EARLY_FLOOR:
         return None
     best = None
@@ -185,6 +185,12 @@ def early_choice(scan, now: float, cands, var: float):
         if best is None or after < best[1]:
             best = (before, after, pick)
     return best if best is not None and best[1] <= EARLY_GAIN * before else None
+
+
+def early_sigma(scan, now: float) -> float:
+    """The largest σ (nm) of the drift since the scan began, ``now`` s after the epoch,
+    by ``scan``'s model: below :data:`EARLY_FLOOR` no early reference is looked for."""
+    return _largest_std(scan.offset_cov(now))
 
 
 def _largest_std(cov: np.ndarray) -> float:

@@ -289,6 +289,8 @@ def _earliest_rows(ctx: RunContext, picks, take):
             return
         t = yield Msg("clock")
         now = t - ep
+        if bootstrap_picks.early_sigma(scan, now) < bootstrap_picks.EARLY_FLOOR:
+            return                              # before every candidate's room is measured
         cands = [p for s in picks.stretches for p in s] + rods
         room = bootstrap_picks.gaps(ctx.belief, ctx.landmarks, cands)
         best = bootstrap_picks.early_choice(scan, now, [(c, c[2] - ep, r) for c, r in zip(cands, room)],

@@ -61,6 +61,24 @@ def swept_area(obj: str, t: float, tip_path, poses, *, tip_radius: float) -> Swe
     return SweptArea(obj, float(t), ring)
 
 
+def within_reach(g: shapely.Geometry, objects, reach: float) -> list[str]:
+    """Ids of ``objects`` (``(id, body)`` pairs) whose footprint comes closer than
+    ``reach`` (nm) to the geometry ``g``. A body's core lies within half its length of its
+    centre: beyond ``g``'s box by more than that, its radius and the reach, it is out of
+    reach (a 1000-object run: a shapely distance to every object after every push, 7 s
+    of its compute)."""
+    x0, y0, x1, y1 = g.bounds
+    out = []
+    for oid, o in objects:
+        far = reach + o.radius + 0.5 * (o.length or 0.0)
+        x, y = o.at
+        if x < x0 - far or x > x1 + far or y < y0 - far or y > y1 + far:
+            continue
+        if shapely.distance(g, o.geometry()) - o.radius < reach:
+            out.append(oid)
+    return out
+
+
 @dataclass
 class References:
     """The first full scan's record of the objects (layout frame, nm; instrument s).
@@ -108,23 +126,14 @@ class References:
         """Record a push's swept area; quarantine the references within reach of it
         (returns them)."""
         self.pushes = [*self.pushes, area][-KEPT_PUSHES:]
-        g = area.geometry()
-        x0, y0, x1, y1 = g.bounds
+        candidates = ((oid, o) for oid, o in belief.objects.items()
+                      if oid != area.obj and oid not in belief.lost and oid not in self.gated
+                      and oid in self.first_seen)
         hit = []
-        for oid, o in belief.objects.items():
-            if oid == area.obj or oid in belief.lost or oid in self.gated or oid not in self.first_seen:
-                continue
-            # the core lies within half its length of its centre: beyond the box by more
-            # than that and the reach, it is out of reach (a 1000-object run: a shapely
-            # distance to every object after every push, 7 s of its compute)
-            far = QUARANTINE_REACH + o.radius + 0.5 * (o.length or 0.0)
-            x, y = o.at
-            if x < x0 - far or x > x1 + far or y < y0 - far or y > y1 + far:
-                continue
-            if shapely.distance(g, o.geometry()) - o.radius < QUARANTINE_REACH:
-                if oid not in self.quarantine:
-                    hit.append(oid)
-                self.quarantine[oid] = area.obj
+        for oid in within_reach(area.geometry(), candidates, QUARANTINE_REACH):
+            if oid not in self.quarantine:
+                hit.append(oid)
+            self.quarantine[oid] = area.obj
         return hit
 
     def revalidate(self, obj_id: str) -> None:

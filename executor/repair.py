@@ -44,7 +44,6 @@ from .drift_steps import take_reference
 from .edge_slots import edge_line, edge_pushes, edge_slots
 from .engine import Msg
 from .progress_docs import PROGRESS, ProgressDoc
-from .jump_recheck import taken
 from .relocalise import keep_track
 from .scan_steps import locate, scan_window
 from .summary import summary
@@ -119,11 +118,11 @@ def tiles(area, margin: float = SURVEY_MARGIN, largest: float = MAX_SURVEY,
 
 def _overlapping(ctx: RunContext) -> list[str]:
     """Believed particles (not lost) that overlap another by more than half the smaller's
-    diameter (:func:`~.relocalise.taken`): two objects cannot be there; one of them is a
+    diameter (:meth:`~.belief.Belief.taken`): two objects cannot be there; one of them is a
     mistaken identity."""
     b = ctx.belief
     return sorted(oid for oid, o in b.objects.items()
-                  if o.kind == "particle" and oid not in b.lost and taken(ctx, oid, o.at))
+                  if o.kind == "particle" and oid not in b.lost and b.taken(oid, o.at))
 
 
 def doubtful_windows(ctx: RunContext, bad) -> list[tuple[float, float, float, float]]:

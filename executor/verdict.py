@@ -32,7 +32,6 @@ from .apex_check import CROWDED, ROUND, apex_cov, image_check
 from .context import RunContext
 from .drift_steps import suspect_drift
 from .engine import Msg
-from .jump_recheck import taken
 from .local_scan import particle_before, rod_before
 from .scan_steps import clear_direction, run_pattern
 from .slot_verdict import STATES, SlotVerdict
@@ -153,10 +152,11 @@ def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous
         t = yield Msg("clock")
         here = yield Msg("position")
         start = ctx.config.codes_to_nm(np.asarray(here))[:2] - ctx.offset(t)
+        held = set(assigned.values())
         for k in tour(start, [layout.targets[k].at for k in todo]):
             target = layout.targets[todo[k]]
             obj = assigned.get(target.id)
-            verdict = yield from _check_slot(ctx, target, obj, layout.tolerance, held=set(assigned.values()))
+            verdict = yield from _check_slot(ctx, target, obj, layout.tolerance, held=held)
             out[todo[k]] = verdict
             if again or verdict.state != "missed":
                 continue
@@ -313,8 +313,8 @@ def _named(ctx: RunContext, target, centre, seen, tol, held) -> Any:
     near = sorted((math.dist(o.at, centre), oid) for oid, o in fits if oid not in ctx.belief.lost
                   and math.dist(o.at, centre) <= ctx.r_max(t, oid) + tol.position)
     doubtful = sorted((math.dist(o.at, centre), oid) for oid, o in fits
-                      if (oid in ctx.belief.lost or taken(ctx, oid, o.at))
-                      and math.dist(o.at, centre) <= ctx.options.lost_radius)
+                      if math.dist(o.at, centre) <= ctx.options.lost_radius
+                      and (oid in ctx.belief.lost or ctx.belief.taken(oid, o.at)))
     if not (near or doubtful):
         return None
     d, oid = (near or doubtful)[0]

@@ -244,8 +244,7 @@ def _plan(layout: Layout, env: Environment, options: PlanOptions, progress: Prog
           pivot_offsets: dict[str, float] | None, rods_first: bool) -> tuple[Plan, PlanStats, bool]:
     """One plan (:func:`plan_assembly`), the rods' fills first (after the parkings) if
     ``rods_first``; and whether a rod slot was left with no path after a particle slot
-    was filled."""
-    t0 = time.perf_counter()
+    was filled. The caller sets the plan's wall time."""
     s = _Session(layout, env, options)
     s.rods.offsets = dict(pivot_offsets or {})
     on_obstacle = slots_on_obstacles(layout, env)       # no object can be put there: named, not "no path"
@@ -300,5 +299,4 @@ def _plan(layout: Layout, env: Environment, options: PlanOptions, progress: Prog
     plan = Plan(layout.name, tuple(Assignment(t, o) for t, o in assignment), tuple(s.operations),
                 tuple(unfilled), layout.registration)
     s.stats.moves = len(done)
-    s.stats.wall_time = time.perf_counter() - t0
     return plan, s.stats, late

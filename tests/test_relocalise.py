@@ -121,8 +121,8 @@ def test_an_object_pushed_while_the_drift_jumped_is_looked_for_where_the_correct
 def test_a_particle_a_jumped_push_shoved_is_not_taken_for_the_pushed_one():
     """allpushed seed 3, the jump at 815 s: o1's push went 300 nm off its path, over slot
     s9, and shoved o6 out of it by 60 nm (traced against the simulated truth; o1 stayed
-    1.5 µm away). The relocalisation's correction put o1 where o6 now lay: o6 was taken
-    for o1, s9 called missed and the run ended 7 of 9 (``jump_recheck`` not there). o6,
+    far away: a later survey found it 1565 nm from where it was believed). The
+    relocalisation's correction put o1 where o6 now lay: o6 was taken for o1, s9 called missed and the run ended 7 of 9 (``jump_recheck`` not there). o6,
     on the push's corrected path, is now looked for first and found 60 nm from its
     belief; o1 is found by a later survey; every slot filled, by the objects the report
     names."""

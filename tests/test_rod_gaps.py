@@ -14,13 +14,16 @@ from test_planner import filled, replay
 
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Keepout, Layout, Tolerance
+from nanoasm.dryrun import dry_run
 from nanoasm.executor.drift_steps import unskewed_obstacles
+from nanoasm.executor.strategy import ExecOptions
 from nanoasm.planner import check_plan, plan_assembly
 from nanoasm.planner.freespace import FreeSpace
 from nanoasm.planner.options import PlanOptions
 from nanoasm.planner.rods import approach_pose, roomy
 from nanoasm.planner.sequence import order
 from nanoasm.world.environment import EnvObject, EnvObstacle, Environment
+from nanoasm.world.families import family_case
 
 A = 4000.0
 C = A / 2
@@ -167,10 +170,6 @@ def test_a_rod_whose_way_the_gaps_particle_slots_would_bar_is_planned_first():
     rod's way (its zigzag stuck among them, 'no path', 4 of 5 slots on every run). A rod
     slot left with no path after particle slots were filled is planned again with the
     rods first: every slot filled, the rod's too, and the verdict the truth."""
-    from nanoasm.dryrun import dry_run
-    from nanoasm.executor.strategy import ExecOptions
-    from nanoasm.world.families import family_case
-
     scene, layout = family_case("mixed", 5)
     out = dry_run(scene, layout, options=ExecOptions(strategy="full"))
     assert not out.summary.plan.unfilled, out.summary.plan.unfilled
