@@ -24,6 +24,21 @@ def test_an_object_never_enters_an_obstacle():
     assert sim.diagnostics()["slips"] == 1                  # then the tip went over it
 
 
+def test_an_object_against_an_obstacle_may_leave_it_but_not_go_deeper():
+    """A device rod was left 4 nm into a pad's outline; every push then counted as entering
+    the pad, even one taking the rod away, so the tip slipped over it three times and the
+    run gave the rod up (device seed 9). An object already in an obstacle may leave it."""
+    start = (2100.0 - 25.0 + 4.0, 2000.0)                   # 4 nm into the electrode's left side
+    along = world([particle(start, d=50)], obstacles=[ELECTRODE])
+    push(along, (start[0], 1940), (start[0], 2400))        # along the side, then past its corner
+    (p,) = along.truth()
+    assert p.at[1] > 2300 and along.diagnostics()["slips"] == 0
+    deeper = world([particle(start, d=50)], obstacles=[ELECTRODE])
+    push(deeper, (start[0] - 60, 2000), (start[0] + 100, 2000))
+    (q,) = deeper.truth()
+    assert q.at == pytest.approx(start) and deeper.diagnostics()["slips"] == 1
+
+
 def test_the_tip_rides_up_an_obstacle_in_contact():
     sim = world([], obstacles=[ELECTRODE])
     block, _ = push(sim, (1900, 2000), (2300, 2000))

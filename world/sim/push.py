@@ -18,7 +18,8 @@ Motion per step (tip from ``p0`` to ``p1``, sample frame, nm):
   and is soon lost;
 - rod: :func:`~nanoasm.world.sim.rods.rod_motion`; wire:
   :func:`~nanoasm.world.sim.rods.wire_motion`;
-- a stuck object, or one that would enter an obstacle, does not move: the lateral force
+- a stuck object, or one that would enter an obstacle (deeper than it lies in one: it may
+  leave one it lies against), does not move: the lateral force
   rises by the lever's stiffness (``lateral_gain / C1``) times the piezo's overshoot until
   its vertical part lifts the tip over the object.
 
@@ -264,7 +265,7 @@ class PushPhysics(PushWorld):
                 nx, ny = p1[0] + qx * rc / q, p1[1] + qy * rc / q
         body = self.contacts.unit(u)
         moved_body = type(body)(body.id, body.kind, (nx, ny), body.diameter)
-        if self.hits_obstacle(moved_body):
+        if self.hits_obstacle(moved_body, body):
             return self._blocked(o, ep, p1, ep.f_push, f_z)
         ep.moved.update(self.contacts.push(u, (nx - x, ny - y)))
         self.after_shove(ep.moved, o)
@@ -294,7 +295,7 @@ class PushPhysics(PushWorld):
                                   float(rho(motion.l, L)))
         f_lat = float(fc + ff)
         ep.f_push, ep.f_fric = f_lat, f_lat - float(fc)
-        if self.hits_obstacle(motion.body):
+        if self.hits_obstacle(motion.body, body):
             return self._blocked(o, ep, p1, f_lat, f_z)
         if self._slipped(ep, p0, p1):
             return False, 0.0, self.ride_height(o, p1)

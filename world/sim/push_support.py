@@ -25,6 +25,11 @@ from .objects import Kind, ObjectTable
 from .wire import chord_body, segment_body, sync_nodes
 
 
+#: nm by which one step of a push may bring an object that lies in an obstacle nearer it
+#: and still count as moving along it (rounding in the step: 4e-6 nm seen).
+DEEPER = 1e-3
+
+
 class PushWorld:
     """Objects and their contacts, the tip's radius, the pushes in progress."""
 
@@ -162,15 +167,22 @@ class PushWorld:
                 h[near] = np.maximum(h[near], plateau_image(d, self.obstacle_height[k], tip))
         return np.maximum(h, 0.0)
 
-    def hits_obstacle(self, body: Body) -> bool:
-        """True if ``body``'s footprint enters an obstacle."""
+    def hits_obstacle(self, body: Body, before: Body | None = None) -> bool:
+        """True if ``body``'s footprint enters an obstacle; given the pose ``before`` the
+        move, only if it enters deeper than it lay there (an object already against an
+        obstacle may leave it, or move along it)."""
         if not self.obstacles:
             return False
         x0, y0, x1, y1 = body.bounds()
         box = self._obstacle_box
         near = np.flatnonzero((box[:, 0] <= x1) & (box[:, 2] >= x0) & (box[:, 1] <= y1) & (box[:, 3] >= y0))
         geom = body.geometry()
-        return any(shapely.distance(self.obstacles[k], geom) < body.radius * (1 - 1e-9) for k in near)
+        was = None if before is None else before.geometry()
+        for k in near:
+            d = shapely.distance(self.obstacles[k], geom)
+            if d < body.radius * (1 - 1e-9) and (was is None or d < shapely.distance(self.obstacles[k], was) - DEEPER):
+                return True
+        return False
 
     def wire_hits_obstacle(self, o: int, nodes: np.ndarray) -> bool:
         if not self.obstacles:
