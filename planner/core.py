@@ -64,12 +64,13 @@ class _Session:
         self.targets = {t.id: t for t in layout.targets}
         self.objects: dict[str, EnvObject] = {o.id: o for o in env.objects}
         regions = [k.geometry() for k in layout.regions] + [shapely.Polygon(ob.polygon) for ob in env.obstacles]
-        # a rod lying on a keep-out or an obstacle stays where it is (a particle is pushed off)
+        # a rod whose axis lies on a keep-out or an obstacle stays where it is; one that only
+        # touches it is pushed off first (RodController._pushed_off), a particle is pushed off
         on_region = set()
         if regions:
             union = shapely.union_all(regions)
             on_region = {o.id for o in env.objects
-                         if o.kind == "rod" and shapely.distance(o.geometry(), union) < o.radius}
+                         if o.kind == "rod" and shapely.distance(o.geometry(), union) <= 0.0}
         movable = {o.id: o for o in env.objects if assignable(o, options) and o.id not in on_region}
         self.fixed_ids = set(self.objects) - set(movable)
         fixed: list[tuple[shapely.Geometry, float]] = [(g, 0.0) for g in regions]

@@ -109,6 +109,11 @@ class FreeSpace:
         pushed off it: checks exempt these)."""
         return frozenset(self.fixed_hits(geom, radius, 0.0).tolist())
 
+    def fixed_footprint(self, i: int) -> shapely.Geometry:
+        """Fixed entry ``i`` as the area it covers (its geometry grown by its radius)."""
+        g, r = self._fixed[i], float(self._fixed_r[i])
+        return g.buffer(r, quad_segs=16) if r > 0 else g
+
     def blockers(self, geom: shapely.Geometry, radius: float, ignore: Iterable[str] = (),
                  clearance: float | None = None) -> list[str]:
         """Ids of movable bodies within reach of the footprint, sorted."""

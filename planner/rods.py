@@ -241,6 +241,36 @@ EXPANSIONS_PER_UNIT = 1500
 LEG_SHARE = 3
 
 
+#: A rod found touching fixed things is pushed off them first by a swing of one of
+#: these sizes (degrees, either way, near either end) or a small walk
+#: (:meth:`RodController._pushed_off`).
+LEAVE_SWINGS = (2.0, 4.0, 8.0, 16.0)
+#: How many ways off (nearest the goal first) are planned on from.
+LEAVE_TRIES = 3
+#: Swings, at most, in a way off; and how many poses still touching are swung again.
+LEAVE_DEPTH = 3
+LEAVE_FRONTIER = 6
+#: Cost, nm, added to a way off that ends with less than the full clearance.
+LEAVE_CRAMPED = 1e6
+#: Distance, nm, by which a way off may come nearer what it touched between two poses.
+LEAVE_SLACK = 0.05
+
+
+def _deepens(rod: Body, pushes: list[RodPush], touched: list[shapely.Geometry]) -> bool:
+    """Whether a push of ``pushes`` (from ``rod``) ever brings the rod's core nearer one of
+    ``touched`` on its way (its poses 2° apart, :func:`_sweep_ends`): a way off must leave
+    what it touches, not slide along it, where the true rod may lie a few nm otherwise."""
+    a = rod
+    for p in pushes:
+        cores = _cores_of(_sweep_ends(a, p.pose), _half(a))
+        for g in touched:
+            d = shapely.distance(cores, g)
+            if (np.diff(d) < -LEAVE_SLACK).any():
+                return True
+        a = p.pose
+    return False
+
+
 class RodController:
     """Finds zigzag pushes for one rod: a lattice search over push macros under the pivot
     model (fewest pushes), with swept-area checks; OMPL's SE(2) path guides it when the
@@ -463,6 +493,8 @@ class RodController:
         (:class:`~nanoasm.planner.ompl_setup.Budget`) only stops a pathological case,
         and says so in the log."""
         self.exempt = self.space.lying_on(rod.geometry(), rod.radius)
+        if self.exempt:
+            return self._pushed_off(rod, goal, max_pushes)
         cramped = not swept_free(self.space, rod, rod, rod.id, None, self.exempt)
         # a rod that starts closer to its neighbours than the clearance only avoids
         # contact; one whose way with the full clearance is shut (a slot in a gap barely
@@ -488,6 +520,66 @@ class RodController:
                 return again
             found = found or again
         return found
+
+    def _pushed_off(self, rod: Body, goal: Body, max_pushes: int) -> tuple[list[RodPush], Body, bool]:
+        """A rod found touching fixed things (an electrode's outline, a keep-out: a push
+        that went astray against a pad leaves it there) is first pushed off them: up to
+        ``LEAVE_DEPTH`` swings about its pivot (or one small walk), each of which takes it
+        away from what it touches all along its sweep (:func:`_deepens`), ending a
+        tip's radius clear of everything fixed; the ways off that end nearest the goal
+        are tried first. The rest is planned from there with nothing exempt, so no later
+        push may slide along what the rod touched (an exemption for the whole plan let a
+        walk slide along a pad)."""
+        start = self.exempt
+        off = self._ways_off(rod, goal)
+        for way in off[:LEAVE_TRIES]:
+            rest, pose, ok = self.pushes(way[-1].pose, goal, max(max_pushes - len(way), 0))
+            if ok:
+                return way + rest, pose, True
+        self.exempt = start
+        return [], rod, False
+
+    def _ways_off(self, rod: Body, goal: Body) -> list[list[RodPush]]:
+        """Push sequences that take ``rod`` off what it touches (:meth:`_pushed_off`),
+        those that end with the space's full clearance first, each kind nearest the goal
+        first: a breadth-first search over single swings, the ``LEAVE_FRONTIER`` nearest
+        the goal of those still within a tip's radius of what they touched swung again.
+        Each swing must leave everything within a tip's radius of its start
+        (:func:`_deepens`), not only what it touches."""
+        margin = self.options.tip_radius              # room for the next push's sweep to start in
+        saved = self.clearance
+        self.clearance = 0.0                          # a small move: contact is what it must avoid
+        found: list[tuple[float, list[RodPush]]] = []
+        frontier: list[tuple[Body, list[RodPush]]] = [(rod, [])]
+        try:
+            for depth in range(LEAVE_DEPTH):
+                grown = []
+                for pose, way in frontier:
+                    self.exempt = self.space.lying_on(pose.geometry(), pose.radius)
+                    near = set(self.space.fixed_hits(pose.geometry(), pose.radius, margin).tolist())
+                    touched = [self.space.fixed_footprint(i) for i in sorted(near)]
+                    steps = [[s] for end in (-1, 1) for mag in LEAVE_SWINGS for sign in (-1, 1)
+                             if (s := self._swing(pose, end, sign * mag)) is not None]
+                    if depth == 0:
+                        steps += [s for m in self._macros(pose)[1]
+                                  if m.size <= 2 and (s := self._realise(pose, m)) is not None]
+                    for step in steps:
+                        if _deepens(pose, step, touched):
+                            continue
+                        end_pose = step[-1].pose
+                        cost = self._cost(end_pose, goal) + 1e-3 * (len(way) + len(step))
+                        hits = set(self.space.fixed_hits(end_pose.geometry(), end_pose.radius, margin).tolist())
+                        if not hits:
+                            roomy_end = not self.space.fixed_hits(end_pose.geometry(), end_pose.radius).size
+                            found.append((cost + (0.0 if roomy_end else LEAVE_CRAMPED), way + step))
+                        elif hits <= near:                # still near only what it was near
+                            grown.append((cost, way + step))
+                grown.sort(key=lambda c: c[0])
+                frontier = [(w[-1].pose, w) for _, w in grown[:LEAVE_FRONTIER]]
+        finally:
+            self.clearance = saved
+        found.sort(key=lambda c: c[0])
+        return [w for _, w in found]
 
     def _pushes(self, rod: Body, goal: Body, max_pushes: int, clearance: float | None,
                 approach: bool = False, direct: bool = True) -> tuple[list[RodPush], Body, bool]:

@@ -175,3 +175,51 @@ def test_a_rod_whose_way_the_gaps_particle_slots_would_bar_is_planned_first():
     assert not out.summary.plan.unfilled, out.summary.plan.unfilled
     slots = {t.id for t in layout.targets}
     assert set(out.truly_filled) == slots and set(out.filled) == slots and not out.disagreements
+
+
+def _against_right_pad(angle: float, into: float, length: float = 1250.0) -> EnvObject:
+    """A rod in the gap whose upper end lies ``into`` nm into the right pad's outline."""
+    half = (length - 90.0) / 2
+    x = C + 700 - 45 + into - abs(math.cos(math.radians(angle))) * half
+    return EnvObject("r", "rod", (x, C + 300), 90.0, angle, length)
+
+
+@pytest.mark.parametrize("angle", [45.0, 135.0])
+def test_a_rod_against_a_pad_is_pushed_off_it_first(angle):
+    """A push that goes astray in the gap can leave a rod against a pad (device seeds 2, 6
+    and 9: 350-500 nm off course). It used to be held there for good, and its slot and
+    the particle slots it barred stayed empty. Now its first pushes only take it away
+    from the pad, and it ends a tip's radius clear of it; the rest of the plan touches
+    nothing."""
+    rod = _against_right_pad(angle, 15.0)
+    pad = shapely.Polygon(PADS[1])
+    assert shapely.distance(rod.geometry(), pad) < rod.radius          # it lies on the pad
+    plan = _plan_fills_every_slot(*_case([rod, EnvObject("a", "particle", (C - 250, C - 1200), 90.0),
+                                          EnvObject("b", "particle", (C + 250, C - 1200), 90.0)]))
+    gaps = [shapely.distance(rod.geometry(), pad)]
+    for op in (o for o in plan.operations if o.object == "r"):
+        pose = Body("r", "rod", op.expect.at, 90.0, op.expect.angle, rod.length)
+        gaps.append(shapely.distance(pose.geometry(), pad))
+        if gaps[-1] >= rod.radius + 10.0:
+            break
+    assert gaps[-1] >= rod.radius + 10.0 and all(b >= a - 0.05 for a, b in zip(gaps, gaps[1:])), gaps
+
+
+def test_a_rod_whose_axis_lies_on_a_pad_is_held():
+    """A rod whose axis crosses into a pad lies on it: it is not pushed, and its slot
+    says why."""
+    plan, _ = plan_assembly(*_case([_against_right_pad(45.0, 60.0)]))
+    (bar,) = [u for u in plan.unfilled if u.target == "bar"]
+    assert "'r' may not" in bar.reason and "keep-out" in bar.reason
+
+
+def test_a_device_rod_left_against_a_pad_is_pushed_off_it_and_arrives():
+    """device seed 9: a push at the gap's entrance went 381 nm astray and left the rod 4 nm
+    inside the right pad's outline, beside a particle on the pad. The rod was held there
+    (and, once it was not, the simulated pad blocked every move of it, even away), so the
+    rod slot and a particle slot it barred stayed empty (7 of 9). Now it is pushed off and
+    every slot is filled, the verdict the truth."""
+    scene, layout = family_case("device", 9)
+    out = dry_run(scene, layout, options=ExecOptions(strategy="full"))
+    slots = {t.id for t in layout.targets}
+    assert set(out.truly_filled) == slots and not out.disagreements
