@@ -250,8 +250,6 @@ LEAVE_TRIES = 3
 #: Swings, at most, in a way off; and how many poses still touching are swung again.
 LEAVE_DEPTH = 3
 LEAVE_FRONTIER = 6
-#: Cost, nm, added to a way off that ends with less than the full clearance.
-LEAVE_CRAMPED = 1e6
 #: Distance, nm, by which a way off may come nearer what it touched between two poses.
 LEAVE_SLACK = 0.05
 
@@ -530,13 +528,10 @@ class RodController:
         are tried first. The rest is planned from there with nothing exempt, so no later
         push may slide along what the rod touched (an exemption for the whole plan let a
         walk slide along a pad)."""
-        start = self.exempt
-        off = self._ways_off(rod, goal)
-        for way in off[:LEAVE_TRIES]:
+        for way in self._ways_off(rod, goal)[:LEAVE_TRIES]:
             rest, pose, ok = self.pushes(way[-1].pose, goal, max(max_pushes - len(way), 0))
             if ok:
                 return way + rest, pose, True
-        self.exempt = start
         return [], rod, False
 
     def _ways_off(self, rod: Body, goal: Body) -> list[list[RodPush]]:
@@ -549,7 +544,7 @@ class RodController:
         margin = self.options.tip_radius              # room for the next push's sweep to start in
         saved = self.clearance
         self.clearance = 0.0                          # a small move: contact is what it must avoid
-        found: list[tuple[float, list[RodPush]]] = []
+        found: list[tuple[tuple[bool, float], list[RodPush]]] = []
         frontier: list[tuple[Body, list[RodPush]]] = [(rod, [])]
         try:
             for depth in range(LEAVE_DEPTH):
@@ -570,8 +565,8 @@ class RodController:
                         cost = self._cost(end_pose, goal) + 1e-3 * (len(way) + len(step))
                         hits = set(self.space.fixed_hits(end_pose.geometry(), end_pose.radius, margin).tolist())
                         if not hits:
-                            roomy_end = not self.space.fixed_hits(end_pose.geometry(), end_pose.radius).size
-                            found.append((cost + (0.0 if roomy_end else LEAVE_CRAMPED), way + step))
+                            cramped = bool(self.space.fixed_hits(end_pose.geometry(), end_pose.radius).size)
+                            found.append(((cramped, cost), way + step))
                         elif hits <= near:                # still near only what it was near
                             grown.append((cost, way + step))
                 grown.sort(key=lambda c: c[0])

@@ -187,7 +187,7 @@ def _against_right_pad(angle: float, into: float, length: float = 1250.0) -> Env
 @pytest.mark.parametrize("angle", [45.0, 135.0])
 def test_a_rod_against_a_pad_is_pushed_off_it_first(angle):
     """A push that goes astray in the gap can leave a rod against a pad (device seeds 2, 6
-    and 9: 350-500 nm off course). It used to be held there for good, and its slot and
+    and 9: 350-506 nm off course). It used to be held there for good, and its slot and
     the particle slots it barred stayed empty. Now its first pushes only take it away
     from the pad, and it ends a tip's radius clear of it; the rest of the plan touches
     nothing."""

@@ -176,11 +176,13 @@ class PushWorld:
         x0, y0, x1, y1 = body.bounds()
         box = self._obstacle_box
         near = np.flatnonzero((box[:, 0] <= x1) & (box[:, 2] >= x0) & (box[:, 1] <= y1) & (box[:, 3] >= y0))
+        if not near.size:
+            return False
         geom = body.geometry()
-        was = None if before is None else before.geometry()
         for k in near:
             d = shapely.distance(self.obstacles[k], geom)
-            if d < body.radius * (1 - 1e-9) and (was is None or d < shapely.distance(self.obstacles[k], was) - DEEPER):
+            if d < body.radius * (1 - 1e-9) and (
+                    before is None or d < shapely.distance(self.obstacles[k], before.geometry()) - DEEPER):
                 return True
         return False
 
