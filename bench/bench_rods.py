@@ -43,10 +43,19 @@ def one_run(args: tuple[str, int]) -> dict:
     pivots: dict[str, dict] = {}
     first_angle: dict[str, float] = {}         # the filter's axis angle after a rod's first push
     surprise: list[float] = []                 # expected vs scanned centre after a rod's 4th+ push
+    rod_work: dict[str, list] = {}             # per rod pushed: [pushes, instrument time]
+    last_t = [None]                            # the end of the push before (the first push's
+    #                                            time from the full scan's end is not counted)
 
     def sub(topic, doc):
         if topic == "push":
             d = as_dict(doc)
+            t_end, t_prev = float(d["t"]), last_t[0]
+            last_t[0] = t_end
+            if d["belief"].get("kind") == "rod":
+                work = rod_work.setdefault(d["op"]["object"], [0, 0.0])
+                work[0] += 1
+                work[1] += t_end - t_prev if t_prev is not None else 0.0
             if d.get("pivot") is not None:
                 pivots[d["op"]["object"]] = d["pivot"]
                 first_angle.setdefault(d["op"]["object"], d["pivot"]["angle"])
@@ -81,11 +90,16 @@ def one_run(args: tuple[str, int]) -> dict:
             "rod_true": len([s for s in out.truly_filled if s in {r.id for r in rod_slots}]),
             "centre": centre, "angle": angle, "deltas": deltas, "pushes": rep.counts.pushes,
             "after_scan_s": t.total - t.full_scan, "agree": not out.disagreements,
-            "slots": len(layout.targets), "filled": len(out.truly_filled), "surprise": surprise}
+            "slots": len(layout.targets), "filled": len(out.truly_filled), "surprise": surprise,
+            "rod_pushes": [n for n, _ in rod_work.values()], "rod_time": sum(w for _, w in rod_work.values())}
 
 
 def _pct(v, q: float) -> float:
     return float(np.percentile(v, q)) if v else math.nan
+
+
+def _median(v) -> float:
+    return float(statistics.median(v)) if v else math.nan
 
 
 def _rms(v) -> float:
@@ -99,10 +113,15 @@ def report(rows: list[dict], argv: list[str], seconds: float) -> str:
              "run; instrument time after the full scan; δ: the rods' pivot offset estimates at the end "
              "against the world's, fractions of L (|error| ≤ 0.01 among rods with ≥ 6 pushes); after "
              "push: the distance between where a rod was expected after its 4th and later pushes and "
-             "where its scan found it, nm, median (90th percentile).", "",
+             "where its scan found it, nm, median (90th percentile); pushes per rod: pushes of each rod "
+             "pushed, median over the family's rods; rod s per rod slot: instrument time from the end "
+             "of the push before to the end of each rod push (travel, scans, drift references, the "
+             "push; a run's first push from the end of the push before only), summed over the family and "
+             "divided by its rod slots.", "",
              "| family | runs | rod slots | centre RMS nm | angle RMS ° | pushes (median) | time after scan s "
-             "(median) | δ error RMS | within 0.01 (≥ 6 pushes) | after push nm | verdict agrees |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "(median) | pushes per rod | rod s per rod slot | δ error RMS | within 0.01 (≥ 6 pushes) "
+             "| after push nm | verdict agrees |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for fam in dict.fromkeys(r["family"] for r in rows):
         rs = [r for r in rows if r["family"] == fam]
         d = [x for r in rs for x in r["deltas"]]
@@ -113,6 +132,8 @@ def report(rows: list[dict], argv: list[str], seconds: float) -> str:
             f"| {_fmt(_rms([c for r in rs for c in r['centre']]))} | {_fmt(_rms([a for r in rs for a in r['angle']]))} "
             f"| {_fmt(statistics.median(r['pushes'] for r in rs))} "
             f"| {_fmt(statistics.median(r['after_scan_s'] for r in rs), 4)} "
+            f"| {_fmt(_median([n for r in rs for n in r['rod_pushes']]))} "
+            f"| {_fmt(sum(r['rod_time'] for r in rs) / max(sum(r['rod_slots'] for r in rs), 1), 4)} "
             f"| {_fmt(_rms([a - b for a, b, _, _ in d]))} "
             f"| {sum(abs(a - b) <= 0.01 for a, b, _, _ in d6)}/{len(d6)} "
             f"| {_fmt(_pct(sur, 50))} ({_fmt(_pct(sur, 90))}) "
