@@ -19,6 +19,7 @@ from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout
 from nanoasm.world.environment import Environment, EnvObject
 
+from . import rod_why
 from .assign import assignable, compatible, effort, match
 from .frames import slots_on_obstacles
 from .freespace import FreeSpace
@@ -81,8 +82,11 @@ class _Session:
         self.operations: list[Operation] = []
         self.pushed: list[str] = []
         self.stats = PlanStats()
+        names = rod_why.fixed_names(len(layout.keepouts), len(layout.marks), env.obstacles, sorted(self.fixed_ids))
         self.rods = RodController(self.space, options, layout.tolerance.position / 2,
-                                  layout.tolerance.angle / 2)
+                                  layout.tolerance.angle / 2, fixed_names=names)
+        #: why a slot's rod found no way in (:attr:`RodController.failure`), by slot
+        self.why: dict[str, str] = {}
 
     # -- operations -----------------------------------------------------------------
     def _emit(self, obj: Body, target: str | None, tip_path, expect: Body) -> None:
@@ -136,6 +140,8 @@ class _Session:
     def move_rod(self, obj: EnvObject, goal: Body, target: str | None) -> bool:
         pushes, final, ok = self.rods.pushes(obj, goal, push_limit(obj, [obj, goal], self.options))
         if not ok:
+            if target is not None and self.rods.failure:
+                self.why[target] = self.rods.failure
             return False
         for p in pushes:
             self._emit(obj, target, p.tip_path, p.pose)
@@ -289,7 +295,8 @@ def _plan(layout: Layout, env: Environment, options: PlanOptions, progress: Prog
         if spare is not None:
             done.append((key, spare))
         else:
-            unfilled.append(Unfilled(key, f"no path for {object_of[key]!r}"))
+            why = s.why.get(key) if target.kind == "rod" else None
+            unfilled.append(Unfilled(key, f"no path for {object_of[key]!r}" + (f": {why}" if why else "")))
             late = late or (target.kind == "rod" and any(s.targets[t].kind == "particle" for t, _ in done))
     if progress:
         progress(len(nodes), len(nodes))

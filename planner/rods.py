@@ -32,7 +32,7 @@ import shapely
 from nanoasm.bodies import Body
 from nanoasm.world.pivot import RodPose, pivot_position, rod_step
 
-from . import ompl_setup
+from . import ompl_setup, rod_why
 from .assign import axis_error
 from .freespace import FreeSpace
 from .ompl_setup import Budget
@@ -275,8 +275,14 @@ class RodController:
     search alone does not get through."""
 
     def __init__(self, space: FreeSpace, options: PlanOptions, pos_tol: float, ang_tol: float,
-                 max_expansions: int = 3000):
+                 max_expansions: int = 3000, fixed_names: tuple[str, ...] = ()):
         self.space, self.options = space, options
+        #: what each of the space's fixed entries is, for the reasons a search gives
+        self.fixed_names = fixed_names
+        #: why the last :meth:`pushes` found no way (None after one that did)
+        self.failure: str | None = None
+        self._nearest: Body | None = None       # the pose a failed search came nearest its goal at
+        self._sought: Body | None = None        # and that goal (the slot, or a waypoint on the way)
         self.pos_tol, self.ang_tol = pos_tol, ang_tol
         self.max_expansions = max_expansions
         self.clearance: float | None = None     # None: the space's own (full) clearance
@@ -355,6 +361,7 @@ class RodController:
         heap = [(h(*rod.at, rod.angle), 0, counter, rod, key(*rod.at, rod.angle), None, None)]
         closed: set[tuple] = set()
         expansions = 0
+        nearest = (self._cost(rod, goal), rod)
         while heap and expansions < self.max_expansions and not self.allowance.exhausted():
             _, g, _, pose, k, parent, macro = heapq.heappop(heap)
             if k in closed:
@@ -367,6 +374,8 @@ class RodController:
                     continue
                 trail = (parent[1], step)
             closed.add(k)
+            if (cost := self._cost(pose, goal)) < nearest[0]:
+                nearest = (cost, pose)
             if self._done(pose, goal, near_pos, near_ang):
                 pushes: list[RodPush] = []
                 while trail is not None:
@@ -388,6 +397,7 @@ class RodController:
                     continue
                 counter += 1
                 heapq.heappush(heap, (g + m.size + h(x, y, a), g + m.size, counter, (x, y, a), ck, (pose, trail), m))
+        self._nearest, self._sought = nearest[1], goal
         return None
 
     def _finish(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body, bool]:
@@ -511,12 +521,18 @@ class RodController:
         if enclosed:
             tries += [(self.options.tip_radius, True, False)] if not cramped else []
             tries += [(first, False, False)]
-        found = None
+        found, why = None, []
         for clearance, approach, direct in tries:
             again = self._pushes(rod, goal, max_pushes, clearance, approach=approach, direct=direct)
             if again[2]:
+                self.failure = None
                 return again
             found = found or again
+            why.append(self.failure)
+        # each try's reason once, in the order tried
+        whys = list(dict.fromkeys(w for w in why if w))
+        self.failure = "; ".join([rod_why.straight_way(self.space, self.fixed_names, rod, goal), *whys[:1]]
+                                 + [f"tried again: {w}" for w in whys[1:]])
         return found
 
     def _pushed_off(self, rod: Body, goal: Body, max_pushes: int) -> tuple[list[RodPush], Body, bool]:
@@ -528,10 +544,15 @@ class RodController:
         are tried first. The rest is planned from there with nothing exempt, so no later
         push may slide along what the rod touched (an exemption for the whole plan let a
         walk slide along a pad)."""
-        for way in self._ways_off(rod, goal)[:LEAVE_TRIES]:
+        ways = self._ways_off(rod, goal)[:LEAVE_TRIES]
+        for way in ways:
             rest, pose, ok = self.pushes(way[-1].pose, goal, max(max_pushes - len(way), 0))
             if ok:
                 return way + rest, pose, True
+        touched = rod_why.listed([self.fixed_names[i] if i < len(self.fixed_names) else f"fixed entry {i + 1}"
+                                  for i in sorted(self.space.lying_on(rod.geometry(), rod.radius))] or ["?"])
+        self.failure = (f"it touches {touched}: no swing or small walk takes it off" if not ways else
+                        f"it touches {touched}; from the best of {len(ways)} ways off: {self.failure}")
         return [], rod, False
 
     def _ways_off(self, rod: Body, goal: Body) -> list[list[RodPush]]:
@@ -590,6 +611,8 @@ class RodController:
             direct = direct and (self.options.rod_direct == "always"
                                  or swept_free(self.space, rod, goal, rod.id, clearance, self.exempt))
             first = self._leg(rod, goal, near_pos, near_ang) if direct else None
+            direct_why = (f"the direct search found no way ({self._stuck()})" if direct and first is None
+                          else None)
             if first is None:
                 self.allowance = Budget.of(self.options, EXPANSIONS_PER_UNIT, what, share=LEG_SHARE)
                 # the full clearance along the SE(2) path: a rod's end strays ~15 nm per 2°
@@ -598,6 +621,8 @@ class RodController:
                 waypoints = (approach_waypoints(self.space, rod, goal, self.options, clearance) if approach
                              else se2_waypoints(self.space, rod, goal, self.options))
                 if not waypoints:
+                    self._fail(direct_why, "no approach path into the enclosed slot" if approach else
+                               "no SE(2) path (OMPL) within its budget")
                     return [], rod, False
                 legs = waypoints[1:]
                 # a detour is longer than the straight way the caller's limit was set by
@@ -615,10 +640,16 @@ class RodController:
                 if step is None:
                     # else a new SE(2) path from there (twice at most)
                     if fresh_paths >= 2 or self.allowance.exhausted() or first is not None:
+                        k = next((j for j, w in enumerate(legs) if w is self._sought), i)   # the leg last sought
+                        self._fail(direct_why, f"the zigzag along the SE(2) path found no way to its waypoint "
+                                   f"{k + 1} of {len(legs)}, {rod_why.where(legs[k], goal)} "
+                                   f"({self._stuck('the waypoint')}" + ("; its search budget spent)"
+                                                                        if self.allowance.exhausted() else ")"))
                         return out, pose, False
                     fresh_paths += 1
                     waypoints = se2_waypoints(self.space, pose, goal, self.options)
                     if not waypoints:
+                        self._fail(direct_why, f"no SE(2) path on from {rod_why.where(pose, goal)}")
                         return out, pose, False
                     legs, i = waypoints[1:], 0
                     continue
@@ -626,9 +657,26 @@ class RodController:
                 pose = out[-1].pose if out else pose
                 i += 1
             rest, pose, ok = self._finish(pose, goal, max(max_pushes - len(out), 0))
-            return out + rest, pose, ok and len(out) + len(rest) <= max_pushes
+            n = len(out) + len(rest)
+            if not ok:
+                self._fail(None, f"the last pushes stopped at {rod_why.where(pose, goal)} (within "
+                           f"{self.pos_tol:.0f} nm and {self.ang_tol:.1f}° needed)")
+            elif n > max_pushes:
+                self._fail(None, f"the way takes {n} pushes, more than the {max_pushes} allowed")
+            return out + rest, pose, ok and n <= max_pushes
         finally:
             self.clearance = None
+
+    def _fail(self, *why: str | None) -> None:
+        """Say why the present try found no way (:attr:`failure`)."""
+        self.failure = "; ".join(w for w in why if w)
+
+    def _stuck(self, what: str = "the slot") -> str:
+        """Where the last failed search came nearest its goal (``what``), and what is
+        beside it there."""
+        if self._nearest is None or self._sought is None:
+            return "it expanded nothing"
+        return rod_why.stuck(self.space, self.fixed_names, self._nearest, self._sought, self.clearance, what)
 
 
 def push_limit(rod: Body, poses: list[Body], options: PlanOptions) -> int:

@@ -6,6 +6,7 @@ full scan's drifting rows drew them (issue 14: the device family's rod was never
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -223,3 +224,23 @@ def test_a_device_rod_left_against_a_pad_is_pushed_off_it_and_arrives():
     out = dry_run(scene, layout, options=ExecOptions(strategy="full"))
     slots = {t.id for t in layout.targets}
     assert set(out.truly_filled) == slots and not out.disagreements
+
+
+def test_a_rod_slot_with_no_way_in_says_why_and_where():
+    """Issue 14: a search that finds no path says which constraint, where. The gap is
+    closed from below by a keep-out: the rod below cannot reach the slot, and the reason
+    names the keep-out in its straight way, where the search came nearest and that no
+    SE(2) path was found."""
+    lid = ((C - 700, C - 800), (C + 700, C - 800), (C + 700, C - 700), (C - 700, C - 700))
+    layout = Layout((A, A), (BAR,), tuple(Keepout(p) for p in (*PADS, lid)), Tolerance(), "gap")
+    env = Environment((A, A), (EnvObject("r1", "rod", (C, 900.0), 90.0, 0.0, 1200.0),),
+                      tuple(EnvObstacle(p, 30.0) for p in PADS))
+    plan, _ = plan_assembly(layout, env, PlanOptions(budget=0.3))
+    (u,) = plan.unfilled
+    assert u.target == "bar" and u.reason.startswith("no path for 'r1': ")
+    assert "the straight way is blocked by keep-out 3" in u.reason
+    near = re.search(r"nearest at \((\d+), (\d+)\) at (\d+)°, (\d+) nm and (\d+)° from the slot", u.reason)
+    assert near, u.reason
+    x, y, _, dist, _ = (int(v) for v in near.groups())
+    assert y < C - 700 and dist == pytest.approx(math.dist((x, y), (C, C)), abs=1)   # below the lid
+    assert "no SE(2) path (OMPL)" in u.reason
