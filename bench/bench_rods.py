@@ -44,18 +44,18 @@ def one_run(args: tuple[str, int]) -> dict:
     first_angle: dict[str, float] = {}         # the filter's axis angle after a rod's first push
     surprise: list[float] = []                 # expected vs scanned centre after a rod's 4th+ push
     rod_work: dict[str, list] = {}             # per rod pushed: [pushes, instrument time]
-    last_t = [None]                            # the end of the push before (the first push's
+    last_t = None                              # the end of the push before (the first push's
     #                                            time from the full scan's end is not counted)
 
     def sub(topic, doc):
+        nonlocal last_t
         if topic == "push":
             d = as_dict(doc)
-            t_end, t_prev = float(d["t"]), last_t[0]
-            last_t[0] = t_end
+            t_prev, last_t = last_t, float(d["t"])
             if d["belief"].get("kind") == "rod":
                 work = rod_work.setdefault(d["op"]["object"], [0, 0.0])
                 work[0] += 1
-                work[1] += t_end - t_prev if t_prev is not None else 0.0
+                work[1] += last_t - t_prev if t_prev is not None else 0.0
             if d.get("pivot") is not None:
                 pivots[d["op"]["object"]] = d["pivot"]
                 first_angle.setdefault(d["op"]["object"], d["pivot"]["angle"])

@@ -76,13 +76,13 @@ class _Session:
         self.fixed_ids = set(self.objects) - set(movable)
         fixed: list[tuple[shapely.Geometry, float]] = [(g, 0.0) for g in regions]
         fixed += [(self.objects[i].geometry(), self.objects[i].radius) for i in sorted(self.fixed_ids)]
+        names = rod_why.fixed_names(layout, env.obstacles, sorted(self.fixed_ids))      # in the order of fixed
         area = (min(layout.area[0], env.area[0]), min(layout.area[1], env.area[1]))
         self.space = FreeSpace(area, fixed, movable, options.clearance)
         self.placed: set[str] = set()          # objects in their final slot: never parked
         self.operations: list[Operation] = []
         self.pushed: list[str] = []
         self.stats = PlanStats()
-        names = rod_why.fixed_names(len(layout.keepouts), len(layout.marks), env.obstacles, sorted(self.fixed_ids))
         self.rods = RodController(self.space, options, layout.tolerance.position / 2,
                                   layout.tolerance.angle / 2, fixed_names=names)
         #: why a slot's rod found no way in (:attr:`RodController.failure`), by slot

@@ -13,11 +13,12 @@ import shapely
 from nanoasm.bodies import Body
 
 
-def fixed_names(n_keepouts: int, n_marks: int, obstacles, fixed_ids) -> tuple[str, ...]:
+def fixed_names(layout, obstacles, fixed_ids) -> tuple[str, ...]:
     """Names of a :class:`~.freespace.FreeSpace`'s fixed entries in the order the planner
-    builds them: the layout's keep-outs, its marks, the obstacles (each with its centre),
-    then the objects that never move."""
-    out = [f"keep-out {k + 1}" for k in range(n_keepouts)] + [f"mark {k + 1}" for k in range(n_marks)]
+    builds them: the layout's regions (keep-outs, then marks), the obstacles (each with
+    its centre), then the objects that never move."""
+    out = [f"keep-out {k + 1}" for k in range(len(layout.keepouts))]
+    out += [f"mark {k + 1}" for k in range(len(layout.marks))]
     for k, ob in enumerate(obstacles):
         c = shapely.Polygon(ob.polygon).representative_point()
         out.append(f"obstacle {k + 1} near ({c.x:.0f}, {c.y:.0f})")
@@ -38,7 +39,12 @@ def in_the_way(space, names: tuple[str, ...], geom, radius: float, ignore: str,
     objects by id, then the fixed entries by name."""
     movable = space.blockers(geom, radius, (ignore,), clearance)
     fixed = sorted(int(i) for i in space.fixed_hits(geom, radius, clearance))
-    return movable + [names[i] if i < len(names) else f"fixed entry {i + 1}" for i in fixed]
+    return movable + [name(names, i) for i in fixed]
+
+
+def name(names: tuple[str, ...], i: int) -> str:
+    """Fixed entry ``i`` by its name (by its number where none was given)."""
+    return names[i] if i < len(names) else f"fixed entry {i + 1}"
 
 
 def listed(items: list[str], most: int = 4) -> str:

@@ -361,9 +361,9 @@ class RodController:
         heap = [(h(*rod.at, rod.angle), 0, counter, rod, key(*rod.at, rod.angle), None, None)]
         closed: set[tuple] = set()
         expansions = 0
-        nearest = (self._cost(rod, goal), rod)
+        nearest = (h(*rod.at, rod.angle), rod)        # the pose with the fewest pushes left, by h
         while heap and expansions < self.max_expansions and not self.allowance.exhausted():
-            _, g, _, pose, k, parent, macro = heapq.heappop(heap)
+            f, g, _, pose, k, parent, macro = heapq.heappop(heap)
             if k in closed:
                 continue
             trail = None
@@ -374,8 +374,8 @@ class RodController:
                     continue
                 trail = (parent[1], step)
             closed.add(k)
-            if (cost := self._cost(pose, goal)) < nearest[0]:
-                nearest = (cost, pose)
+            if f - g < nearest[0]:
+                nearest = (f - g, pose)
             if self._done(pose, goal, near_pos, near_ang):
                 pushes: list[RodPush] = []
                 while trail is not None:
@@ -544,13 +544,12 @@ class RodController:
         are tried first. The rest is planned from there with nothing exempt, so no later
         push may slide along what the rod touched (an exemption for the whole plan let a
         walk slide along a pad)."""
+        touched = rod_why.listed([rod_why.name(self.fixed_names, i) for i in sorted(self.exempt)])
         ways = self._ways_off(rod, goal)[:LEAVE_TRIES]
         for way in ways:
             rest, pose, ok = self.pushes(way[-1].pose, goal, max(max_pushes - len(way), 0))
             if ok:
                 return way + rest, pose, True
-        touched = rod_why.listed([self.fixed_names[i] if i < len(self.fixed_names) else f"fixed entry {i + 1}"
-                                  for i in sorted(self.space.lying_on(rod.geometry(), rod.radius))] or ["?"])
         self.failure = (f"it touches {touched}: no swing or small walk takes it off" if not ways else
                         f"it touches {touched}; from the best of {len(ways)} ways off: {self.failure}")
         return [], rod, False
