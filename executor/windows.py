@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 from scipy import ndimage
-from scipy.signal import correlate
 from skimage.filters import window as taper
 
 from nanoasm.instrument import HeightImage
@@ -45,7 +44,7 @@ class Window:
         object.__setattr__(self, "score", number("score", self.score, nonnegative=True))
 
 
-#: Images of more pixels than this are correlated in bands of rows (bounded memory).
+#: Pixels of an image made at once when windows are summed: more are made in bands of rows.
 BAND_PIXELS = 1 << 22
 
 
@@ -130,26 +129,68 @@ def _centre(w: Window) -> tuple[float, float]:
 
 
 def _near(image: HeightImage, geometry, margin: float) -> np.ndarray:
-    """Pixels whose centres lie within ``margin`` of ``geometry``."""
+    """Pixels whose centres lie within ``margin`` of ``geometry``: inside it grown by
+    ``margin`` (with no margin, in it or on its boundary). Each part of the grown geometry
+    is tested only on the pixels of its bounding box: a whole scan of 4000 x 4000 pixels
+    against the 496 parts of ``scale1000``'s pushed areas took 8.2 s point by point, the
+    same mask. (A point of the geometry lies inside its buffer: a margin leaves nothing
+    for the boundary test to add.)"""
     if not isinstance(geometry, shapely.Geometry):
         raise ValueError(f"avoid must be a shapely geometry, got {type(geometry).__name__}")
     x, y = image.pixel_centres()
-    grown = geometry.buffer(margin) if margin > 0 else geometry
-    return shapely.contains_xy(grown, x[None, :], y[:, None]) | shapely.intersects_xy(
-        geometry, x[None, :], y[:, None])
+    out = np.zeros(image.shape, bool)
+    if margin <= 0:
+        for part in shapely.get_parts(geometry):
+            rows, cols = _box_pixels(x, y, part)
+            out[rows, cols] |= shapely.intersects_xy(part, x[cols][None, :], y[rows][:, None])
+        return out
+    # parts of a (multi)polygon share no interior point: inside the whole is inside one part
+    for part in shapely.get_parts(geometry.buffer(margin)):
+        rows, cols = _box_pixels(x, y, part)
+        out[rows, cols] |= shapely.contains_xy(part, x[cols][None, :], y[rows][:, None])
+    return out
+
+
+def _box_pixels(x: np.ndarray, y: np.ndarray, part) -> tuple[slice, slice]:
+    """Rows and columns of the pixel centres (``x`` of the columns, ``y`` of the rows,
+    both increasing) within ``part``'s bounding box."""
+    x0, y0, x1, y1 = shapely.bounds(part)
+    return (slice(int(np.searchsorted(y, y0, "left")), int(np.searchsorted(y, y1, "right"))),
+            slice(int(np.searchsorted(x, x0, "left")), int(np.searchsorted(x, x1, "right"))))
 
 
 def _window_sums(field, shape: tuple[int, int], weight: np.ndarray, step: int) -> np.ndarray:
-    """Sums of an image times ``weight`` over the windows whose lower-left pixel lies on a
-    ``step`` grid; ``field(r0, r1)`` gives the image's rows ``r0:r1`` (of ``shape``). An
-    image of more than :data:`BAND_PIXELS` pixels is made and correlated in bands of rows
-    (a whole 4096-pixel scan's products and transforms took gigabytes); only the grid's
-    rows are kept."""
+    """Sums of an image times ``weight`` (k x k) over the windows whose lower-left pixel
+    lies on a ``step`` grid; ``field(r0, r1)`` gives the image's rows ``r0:r1`` (of
+    ``shape``). Only the grid's windows are summed: the image is cut into blocks of
+    ``step`` x ``step`` pixels and the weight likewise (padded with zeros to whole
+    blocks), every block's product with every block of the weight is one matrix product,
+    and each window adds its blocks' products up. (A correlation of the whole image kept
+    one window in ``step²``: on ``scale1000``'s 4000-pixel scan, seven such sums took 8.5
+    s.) The image is made in bands of rows (:data:`BAND_PIXELS`), so memory stays
+    bounded."""
     k = weight.shape[0]
-    rows = shape[0] - k + 1                         # windows along y
-    band = max(step, BAND_PIXELS // shape[1] // step * step)
-    if shape[0] * shape[1] <= BAND_PIXELS or band >= rows:
-        return correlate(field(0, shape[0]), weight, mode="valid", method="fft")[::step, ::step].copy()
-    # bands start on the grid (band is a multiple of step), so each keeps its rows ::step
-    return np.vstack([correlate(field(r, min(r + band, rows) + k - 1), weight, mode="valid",
-                                method="fft")[::step, ::step] for r in range(0, rows, band)])
+    nb = -(-k // step)                              # blocks a side of the weight
+    wpad = np.zeros((nb * step, nb * step))
+    wpad[:k, :k] = weight
+    # (pixel within a block, block of the weight) -> weight
+    wb = wpad.reshape(nb, step, nb, step).transpose(1, 3, 0, 2).reshape(step * step, nb * nb)
+    ni, nj = (shape[0] - k) // step + 1, (shape[1] - k) // step + 1      # windows on the grid
+    cols = (nj + nb - 1) * step                     # image columns the windows reach, whole blocks
+    band = max(1, BAND_PIXELS // max(shape[1], 1) // step)                # windows' rows a band
+    out = np.empty((ni, nj))
+    for i0 in range(0, ni, band):
+        i1 = min(i0 + band, ni)
+        r0, r1 = i0 * step, (i1 - 1 + nb) * step    # rows of whole blocks the band's windows reach
+        f = np.zeros((r1 - r0, cols))
+        got = np.asarray(field(r0, min(r1, shape[0])), float)[:, :cols]
+        f[:got.shape[0], :got.shape[1]] = got
+        bi, bj = (r1 - r0) // step, cols // step
+        blocks = f.reshape(bi, step, bj, step).transpose(0, 2, 1, 3).reshape(bi * bj, step * step)
+        g = (blocks @ wb).reshape(bi, bj, nb, nb)  # block (I, J) times weight block (u, v)
+        acc = np.zeros((i1 - i0, nj))
+        for u in range(nb):
+            for v in range(nb):
+                acc += g[u:u + i1 - i0, v:v + nj, u, v]
+        out[i0:i1] = acc
+    return out

@@ -135,8 +135,9 @@ def test_times_summed_another_way_round_are_the_same_instant():
 
 
 def test_a_large_scan_is_scored_in_bands_of_rows_alike(monkeypatch):
-    """executor/windows.py correlates a scan of more than BAND_PIXELS pixels in bands of
-    rows (a 4000-pixel scan's transforms took 2 GB): the same windows, scores to rounding."""
+    """executor/windows.py makes a scan of more than BAND_PIXELS pixels in bands of rows
+    when it sums windows (a 4000-pixel scan's whole transforms took 2 GB): the same
+    windows, scores to rounding."""
     from nanoasm.executor import windows
     from nanoasm.instrument import HeightImage
 
@@ -151,6 +152,47 @@ def test_a_large_scan_is_scored_in_bands_of_rows_alike(monkeypatch):
     banded = windows.choose_windows(image, 400.0, count=4)
     assert [w.region for w in banded] == [w.region for w in whole]
     assert [w.score for w in banded] == pytest.approx([w.score for w in whole], rel=1e-9)
+
+
+@pytest.mark.parametrize("k, step, shape, band", [(200, 25, (640, 700), 1 << 22), (203, 25, (600, 555), 40000),
+                                                 (37, 4, (101, 87), 1 << 22), (8, 1, (20, 30), 100),
+                                                 (64, 8, (64, 64), 1 << 22)])
+def test_window_sums_on_the_grid_are_the_correlations_there(monkeypatch, k, step, shape, band):
+    """executor/windows.py sums only the step grid's windows, block by block (the weight
+    padded to whole blocks, the image made in bands of rows): the values the whole
+    correlation has on the grid."""
+    from scipy.signal import correlate
+    from skimage.filters import window as taper
+
+    from nanoasm.executor import windows
+
+    rng = np.random.default_rng(k)
+    h, w = rng.normal(size=shape), taper("hann", (k, k))
+    monkeypatch.setattr(windows, "BAND_PIXELS", band)
+    got = windows._window_sums(lambda r0, r1: h[r0:r1], shape, w, step)
+    want = correlate(h, w, mode="valid", method="fft")[::step, ::step]
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+
+
+@pytest.mark.parametrize("margin", [0.0, 20.0])
+def test_pixels_near_what_to_avoid_are_those_of_the_pointwise_test(margin):
+    """executor/windows.py tests each part of what to avoid on the pixels of its box: the
+    same mask as every pixel against the whole."""
+    import shapely
+
+    from nanoasm.executor import windows
+    from nanoasm.instrument import HeightImage
+
+    rng = np.random.default_rng(5)
+    image = HeightImage(np.zeros((120, 150)), 10.0, (-35.0, 12.0), "test", {})
+    avoid = shapely.union_all([shapely.LineString(rng.uniform(0, 1400, (2, 2))).buffer(rng.uniform(5, 40))
+                               for _ in range(12)] + [shapely.box(100.0, 100.0, 300.0, 250.0)])
+    x, y = image.pixel_centres()
+    grown = avoid.buffer(margin) if margin > 0 else avoid
+    want = shapely.contains_xy(grown, x[None, :], y[:, None]) | shapely.intersects_xy(avoid, x[None, :], y[:, None])
+    got = windows._near(image, avoid, margin)
+    assert want.sum() > 500 and (got == want).all()
 
 
 def test_candidates_through_the_grid_are_those_of_every_unit():
