@@ -138,16 +138,12 @@ def _near(image: HeightImage, geometry, margin: float) -> np.ndarray:
     if not isinstance(geometry, shapely.Geometry):
         raise ValueError(f"avoid must be a shapely geometry, got {type(geometry).__name__}")
     x, y = image.pixel_centres()
-    out = np.zeros(image.shape, bool)
-    if margin <= 0:
-        for part in shapely.get_parts(geometry):
-            rows, cols = _box_pixels(x, y, part)
-            out[rows, cols] |= shapely.intersects_xy(part, x[cols][None, :], y[rows][:, None])
-        return out
     # parts of a (multi)polygon share no interior point: inside the whole is inside one part
-    for part in shapely.get_parts(geometry.buffer(margin)):
+    grown, test = (geometry, shapely.intersects_xy) if margin <= 0 else (geometry.buffer(margin), shapely.contains_xy)
+    out = np.zeros(image.shape, bool)
+    for part in shapely.get_parts(grown):
         rows, cols = _box_pixels(x, y, part)
-        out[rows, cols] |= shapely.contains_xy(part, x[cols][None, :], y[rows][:, None])
+        out[rows, cols] |= test(part, x[cols][None, :], y[rows][:, None])
     return out
 
 
