@@ -21,6 +21,72 @@ class Seen:
     cov: np.ndarray
 
 
+class Objects(dict):
+    """The believed objects by id, with an index of their positions (:meth:`near`) kept up
+    to date as they are replaced: an object put back under its id takes its row; one
+    added or removed has the index made anew when next asked."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self._index: tuple[list[str], dict[str, int], np.ndarray, list[float]] | None = None
+
+    def __setitem__(self, key: str, value: EnvObject) -> None:
+        index = self._index
+        if index is not None and key in index[1]:
+            k = index[1][key]
+            index[2][k] = value.at
+            index[3][0] = max(index[3][0], value.length or value.diameter)
+        else:
+            self._index = None
+        super().__setitem__(key, value)
+
+    def __delitem__(self, key: str) -> None:
+        self._index = None
+        super().__delitem__(key)
+
+    def pop(self, *args):
+        self._index = None
+        return super().pop(*args)
+
+    def popitem(self):
+        self._index = None
+        return super().popitem()
+
+    def clear(self) -> None:
+        self._index = None
+        super().clear()
+
+    def update(self, *args, **kwargs) -> None:
+        for k, v in dict(*args, **kwargs).items():
+            self[k] = v
+
+    def setdefault(self, key, default=None):
+        if key not in self:
+            self[key] = default
+        return self[key]
+
+    def __ior__(self, other):
+        self.update(other)
+        return self
+
+    def __copy__(self) -> Objects:
+        return Objects(self)                       # an index of its own
+
+    def near(self, at, reach: float) -> list[str]:
+        """Ids (in order) of the objects whose centre may lie within ``reach`` nm of ``at``
+        plus the largest extent (length or diameter) of any: a superset of those within
+        ``reach`` of ``at`` at their nearest, for a caller to test one by one."""
+        if self._index is None:
+            ids = list(self)
+            xy = np.array([o.at for o in self.values()], float).reshape(-1, 2)
+            self._index = (ids, {oid: k for k, oid in enumerate(ids)}, xy,
+                           [max((o.length or o.diameter for o in self.values()), default=0.0)])
+        ids, _, xy, extent = self._index
+        x, y = float(at[0]), float(at[1])
+        inside = np.hypot(xy[:, 0] - x, xy[:, 1] - y) <= reach + extent[0] + 1e-6 * (1.0 + reach)
+        return [ids[k] for k in np.flatnonzero(inside)]
+
+
 class Belief:
     """Poses of the objects (layout frame), their last sightings, and which are lost.
 
@@ -31,7 +97,7 @@ class Belief:
     def __init__(self, env: Environment, t0: float, cov0: float = 4.0):
         self.area = env.area
         self.obstacles = env.obstacles
-        self.objects: dict[str, EnvObject] = {o.id: o for o in env.objects}
+        self.objects = Objects((o.id, o) for o in env.objects)
         self.seen: dict[str, Seen] = {o.id: Seen(t0, np.eye(2) * cov0) for o in env.objects}
         self.touched: set[str] = set()
         self.lost: set[str] = set()

@@ -133,21 +133,25 @@ REFERENCE_SHARE = 0.6
 SETTLE, SMOOTH, MIN_REFERENCE = 3.0, 4.0, 4.0
 
 
-def _onset(sn: np.ndarray, sl: np.ndarray, along: np.ndarray, lever: Cantilever) -> float:
+def _onset(sn: np.ndarray, sl: np.ndarray, along: np.ndarray, lever: Cantilever, within: float = math.inf) -> float:
     """Where (nm along the push) the contact force first rises above its level over the
     first :data:`SETTLE` nm by 5σ of the smoothed noise (at least :data:`MIN_FORCE`): the
-    object met earlier than the plan put it (its place along the push is known worst)."""
+    object met earlier than the plan put it (its place along the push is known worst).
+    Looked for ``within`` nm of the start only (inf if it is not there): the force is
+    smoothed over the samples up to there and the smoothing's reach beyond."""
     gx, gy = _gains(lever)
     first = np.flatnonzero(along <= SETTLE)
     if first.size < 5:
         first = np.arange(min(5, along.size))
-    fx, fy = gx * (sn - sn[first].mean()), gy * (sl - sl[first].mean())
     per_nm = along.size / max(float(along[-1]), 1e-9)
     k = max(1, int(round(SMOOTH * per_nm)))
+    cut = max(min(int(np.searchsorted(along, within, side="right")) + k, along.size), int(first[-1]) + 1)
+    sn, sl, along = sn[:cut], sl[:cut], along[:cut]
+    fx, fy = gx * (sn - sn[first].mean()), gy * (sl - sl[first].mean())
     kernel = np.ones(k) / k
     mag = np.hypot(np.convolve(fx, kernel, mode="same"), np.convolve(fy, kernel, mode="same"))
     noise = math.hypot(float(fx[first].std()), float(fy[first].std())) / math.sqrt(k)
-    above = np.flatnonzero((mag > max(MIN_FORCE, 5.0 * noise)) & (along > SETTLE))
+    above = np.flatnonzero((mag > max(MIN_FORCE, 5.0 * noise)) & (along > SETTLE) & (along <= within))
     return float(along[above[0]]) if above.size else math.inf
 
 
@@ -185,7 +189,8 @@ class PushSignals:
         along = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
         if along[-1] < self.lead + WINDOW:           # too short to have both apart
             return None
-        end = min(REFERENCE_SHARE * self.lead, _onset(sn, sl, along, lever) - SETTLE)
+        share = REFERENCE_SHARE * self.lead                 # an onset beyond share + SETTLE does not matter
+        end = min(share, _onset(sn, sl, along, lever, share + SETTLE) - SETTLE)
         if end < MIN_REFERENCE:
             return None
         reference = np.flatnonzero(along <= end)

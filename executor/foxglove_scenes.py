@@ -13,6 +13,8 @@ import math
 
 import numpy as np
 
+from .json_parts import Kept
+
 #: Colours (r, g, b, a) of what the scenes draw.
 COLOURS = {
     "target": (0.2, 0.6, 1.0, 1.0),
@@ -65,31 +67,51 @@ def grid(doc: dict, stamp):
                 data=h.tobytes())
 
 
-def bodies_scene(bodies, prefix: str, colour, stamp, delete=(), lift=None):
+def bodies_scene(bodies, prefix: str, colour, stamp, delete=(), lift=None, memo: dict | None = None):
     """Bodies (``Body.to_dict()`` documents): particles as spheres, rods and wires as
     boxes along their axis, with their ids, each as entity ``prefix:id``; the entities
-    ``prefix:id`` of ``delete`` removed. Each rests on z = 0, or on ``lift(body)`` (nm)."""
+    ``prefix:id`` of ``delete`` removed. Each rests on z = 0, or on ``lift(body)`` (nm).
+    ``memo``: a dict the caller keeps from one call to the next with the same ``prefix``,
+    ``colour`` and ``lift``: a body that is the very same unchanging part
+    (:class:`~.json_parts.Kept`) as in the last call is drawn as then, not lifted again (a
+    checkpoint redraws a thousand bodies, most of them the parts the last one held)."""
     from foxglove.messages import SceneEntityDeletion, SceneUpdate
 
-    entities = []
+    entities, drawn = [], {}
     for b in bodies:
-        try:
-            x, y = (float(v) for v in b["at"])
-            d = float(b["diameter"])
-        except (KeyError, TypeError, ValueError):
-            continue
-        z = lift(b) if lift is not None else 0.0
-        length, angle = b.get("length"), b.get("angle")
-        key = (tuple(colour), str(b.get("id", "")), x, y, d, z,
-               *((float(length), float(angle)) if length is not None and angle is not None else ()))
-        shapes = _SHAPES.get(key)
-        if shapes is None:
-            if len(_SHAPES) >= SHAPES_KEPT:
-                _SHAPES.clear()
-            shapes = _SHAPES[key] = _shapes(key)
-        entities.append(_entity(f"{prefix}:{b.get('id')}", stamp, texts=[shapes[0]], **shapes[1]))
+        hit = memo.get(id(b)) if memo is not None and type(b) is Kept else None
+        if hit is None or hit[0] is not b:
+            hit = _drawn(b, prefix, colour, lift)
+            if hit is None:
+                continue
+        if memo is not None and type(b) is Kept:
+            drawn[id(b)] = hit
+        entities.append(_entity(hit[1], stamp, texts=[hit[2][0]], **hit[2][1]))
+    if memo is not None:
+        memo.clear()
+        memo.update(drawn)
     deletions = [SceneEntityDeletion(timestamp=stamp, id=f"{prefix}:{i}") for i in delete]
     return SceneUpdate(entities=entities, deletions=deletions)
+
+
+def _drawn(b, prefix: str, colour, lift) -> tuple | None:
+    """(``b``, entity id, its primitives) of :func:`bodies_scene`; None for a body without a
+    position or size."""
+    try:
+        x, y = (float(v) for v in b["at"])
+        d = float(b["diameter"])
+    except (KeyError, TypeError, ValueError):
+        return None
+    z = lift(b) if lift is not None else 0.0
+    length, angle = b.get("length"), b.get("angle")
+    key = (tuple(colour), str(b.get("id", "")), x, y, d, z,
+           *((float(length), float(angle)) if length is not None and angle is not None else ()))
+    shapes = _SHAPES.get(key)
+    if shapes is None:
+        if len(_SHAPES) >= SHAPES_KEPT:
+            _SHAPES.clear()
+        shapes = _SHAPES[key] = _shapes(key)
+    return b, f"{prefix}:{b.get('id')}", shapes
 
 
 #: A body's primitives by (colour, id, x, y, diameter, z[, length, angle]): a run log draws

@@ -78,7 +78,29 @@ def dumps(doc: Any, default: Callable[[Any], Any] | None = None) -> str:
             doc.json = json.dumps(doc, separators=_SEP, default=default)
         return doc.json
     if isinstance(doc, Parts):
-        return "[" + ",".join(dumps(x, default) for x in doc) + "]"
+        return "[" + ",".join([_json(x, default) for x in doc]) + "]"
     if isinstance(doc, PartsDict):
-        return "{" + ",".join(json.dumps(str(k)) + ":" + dumps(x, default) for k, x in doc.items()) + "}"
+        return "{" + ",".join([_key(k) + ":" + _json(x, default) for k, x in doc.items()]) + "}"
     return json.dumps(doc, separators=_SEP, default=default)
+
+
+def _json(x: Any, default) -> str:
+    """:func:`dumps` of an item, a kept part's JSON taken as it is (a checkpoint's
+    thousand parts, each without a further call)."""
+    got = x.json if type(x) in _KEPT else None
+    return got if got is not None else dumps(x, default)
+
+
+_KEPT = (Kept, KeptList)
+#: JSON of the keys seen (object ids: the same few thousand in every checkpoint).
+_KEYS: dict[str, str] = {}
+
+
+def _key(k: Any) -> str:
+    k = str(k)
+    got = _KEYS.get(k)
+    if got is None:
+        if len(_KEYS) >= 100_000:
+            _KEYS.clear()
+        got = _KEYS[k] = json.dumps(k)
+    return got

@@ -24,7 +24,7 @@ from nanoasm.drift import DriftFilter, DriftFilterParams, gate_threshold
 from nanoasm.drift.creep import CreepingOffset, CreepModelParams
 
 from . import creep_terms
-from .reference_choice import Candidate, best, object_candidates
+from .reference_choice import Candidate, best_reference
 from .references import References
 from .scan_drift import EPS, LAM, PARAMETERS, ScanDrift, filter_theta
 from .scan_jump import against_torn_scan
@@ -236,8 +236,8 @@ class Kalman:
         of place again, it tells nothing new: a missed feature is not retired at once)."""
         if not (force or self.wants_reference(t, ctx.options)):
             return None
-        cands = [*object_candidates(ctx, self, t, FULL_SCAN_VAR), *ctx.landmarks.candidates(ctx, self, t)]
-        return best([c for c in cands if c.id not in self.trust.rejected])
+        return best_reference(ctx, self, t, FULL_SCAN_VAR, ctx.landmarks.candidates(ctx, self, t),
+                              self.trust.rejected)
 
     def _consistent(self, t: float, z: np.ndarray, static: np.ndarray, R: np.ndarray) -> bool:
         """Whether an offset measured at ``t`` against the full scan agrees with the

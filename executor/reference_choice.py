@@ -61,23 +61,70 @@ def object_candidates(ctx, est, t: float, full_scan_var: float) -> list[Candidat
     pushed, not quarantined, not moved by the plan, not cut by the image border; each
     measured against where the full scan saw it (``full_scan_var`` nm² per axis). The
     filter's algebra is done for all of them at once (:func:`_terms`)."""
-    belief, refs = ctx.belief, ctx.refs
-    ids = [oid for oid, o in belief.objects.items()
-           if refs.usable(oid, ctx.ledger.pushed, belief.lost) and oid not in belief.touched
-           and oid not in ctx.moving and o.kind == "particle" and not o.edge]
+    ids = _usable(ctx)
+    return _weighed(ctx, est, t, ids, full_scan_var, est.offset(t)) if ids else []
+
+
+def best_object(ctx, est, t: float, full_scan_var: float, exclude=frozenset()) -> Candidate | None:
+    """What :func:`best` chooses of :func:`object_candidates` (those in ``exclude`` left
+    out), without weighing the candidates that cannot beat it. A measurement removes at
+    most the offset's whole variance (the trace of the filter's covariance), and a candidate's
+    seconds are at least those of its lines at the least ``r_max`` plus its travel; so
+    its rate is at most that trace over those seconds. Candidates are weighed in batches
+    of :data:`BATCH`, highest bound first, until no bound left reaches the best rate (a
+    1000-object run has hundreds of candidates at every choice, the best of them near)."""
+    exclude = set(exclude)
+    ids = [oid for oid in _usable(ctx) if oid not in exclude]
     if not ids:
-        return []
+        return None
+    off = est.offset(t)
+    trace = float(np.trace(est.filter.offset(est.clamp(t)).cov)) * (1.0 + 1e-9)    # what the gains are of
+    floor = ctx.options.line_factor * ctx.options.r_max_floor
+    bounds = np.array([trace / max(_seconds(ctx, oid, floor, off), 1e-9) for oid in ids])
+    order = np.argsort(-bounds, kind="stable")
+    chosen = None
+    for start in range(0, len(order), BATCH):
+        if chosen is not None and bounds[order[start]] < chosen.rate:
+            break
+        batch = [ids[k] for k in order[start:start + BATCH]]
+        chosen = best([*([chosen] if chosen is not None else []),
+                       *_weighed(ctx, est, t, batch, full_scan_var, off)])
+    return chosen
+
+
+def best_reference(ctx, est, t: float, full_scan_var: float, features, exclude=()) -> Candidate | None:
+    """:func:`best` of the objects' candidates (:func:`best_object`) and the fixed
+    features' ``features``, those in ``exclude`` left out."""
+    found = best_object(ctx, est, t, full_scan_var, exclude)
+    return best([*([found] if found is not None else []), *(c for c in features if c.id not in exclude)])
+
+
+#: Candidates weighed together by :func:`best_object`.
+BATCH = 32
+
+
+def _usable(ctx) -> list[str]:
+    belief, refs = ctx.belief, ctx.refs
+    return [oid for oid, o in belief.objects.items()
+            if refs.usable(oid, ctx.ledger.pushed, belief.lost) and oid not in belief.touched
+            and oid not in ctx.moving and o.kind == "particle" and not o.edge]
+
+
+def _seconds(ctx, oid, r_max: float, off) -> float:
+    """Instrument seconds of a reference scan of ``oid`` (two lines through it, ``r_max``
+    nm on either side beyond its radius and margin) and of the travel to it."""
+    o = ctx.belief[oid]
+    spacing, margin = ctx.scan_opts.sampling(o.diameter)
+    length = 2 * (o.radius + r_max + margin)
+    return (ctx.timing.seconds(2, 2 * int(length / spacing))
+            + travel_cost(ctx.here, ctx.position(oid) + off, ctx.config.max_speed))
+
+
+def _weighed(ctx, est, t: float, ids, full_scan_var: float, off) -> list[Candidate]:
     R = np.eye(2) * (LOCATED_VAR + full_scan_var)
     full_scan, gains = _terms(ctx, est, t, ids, R)
-    out = []
-    for k, oid in enumerate(ids):
-        o = belief[oid]
-        spacing, margin = ctx.scan_opts.sampling(o.diameter)
-        length = 2 * (o.radius + ctx.r_max(t, oid, full_scan[k]) + margin)
-        seconds = (ctx.timing.seconds(2, 2 * int(length / spacing))
-                   + travel_cost(ctx.here, ctx.position(oid) + est.offset(t), ctx.config.max_speed))
-        out.append(Candidate("object", oid, np.eye(2), R, seconds, float(gains[k])))
-    return out
+    return [Candidate("object", oid, np.eye(2), R, _seconds(ctx, oid, ctx.r_max(t, oid, full_scan[k]), off),
+                      float(gains[k])) for k, oid in enumerate(ids)]
 
 
 def _terms(ctx, est, t: float, ids, R) -> tuple[np.ndarray, np.ndarray]:

@@ -174,7 +174,7 @@ class RunLog:
         self._await_truth = truth
         self._hold = self.stopped = False       # stopped: the run's /stop recorded
         self._t = 0.0                 # latest instrument time seen (s)
-        self._pushes = 0
+        self._pushes, self._drawn = 0, {}      # the memo of the checkpoints' /belief (bodies_scene)
         self._plan_attached = False
         self._layout = layout
         self._handlers = {EVENT: self._on_event, STOP: self._on_stop, FULL_SCAN: self._on_full_scan,
@@ -320,7 +320,7 @@ class RunLog:
 
     def _on_checkpoint(self, doc: dict, t: float | None) -> None:
         objs, lost = believed(doc)
-        self._log("/belief", bodies_scene(objs, "obj", COLOURS["belief"], self._stamp(t), delete=lost), t)
+        self._log("/belief", bodies_scene(objs, "obj", COLOURS["belief"], self._stamp(t), lost, memo=self._drawn), t)
 
     def _on_scan_line(self, doc: dict, t: float | None) -> None:
         scene = scan_line_scene(doc, self._stamp(t))

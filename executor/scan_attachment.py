@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 import math
 import zipfile
+import zlib
 
 import numpy as np
 
@@ -21,11 +22,20 @@ from nanoasm.world.limits import MAX_PIXELS
 FULL_SCAN_ATTACHMENT = "full_scan.npz"
 
 
+#: Bytes of the heights deflated to tell whether deflating them all pays, and the share of
+#: them it must save: a scan's float64 heights carry noise down to the last bits, and
+#: deflating a 4000 x 4000 scan took 3.9 s to save 4 % of its 128 MB.
+SAMPLE_BYTES, WORTH_SAVING = 1 << 20, 0.1
+
+
 def full_scan_bytes(doc: dict) -> bytes:
-    """A full-scan document (``height``, ``pixel_size``, ``origin``) as ``.npz`` bytes."""
+    """A full-scan document (``height``, ``pixel_size``, ``origin``) as ``.npz`` bytes,
+    deflated where a sample of the heights shows that it pays (:data:`WORTH_SAVING`)."""
+    height = np.ascontiguousarray(doc["height"], float)
+    sample = height.reshape(-1)[:SAMPLE_BYTES // 8].tobytes()
+    save = np.savez_compressed if len(zlib.compress(sample, 1)) < (1.0 - WORTH_SAVING) * len(sample) else np.savez
     buf = io.BytesIO()
-    np.savez_compressed(buf, height=np.asarray(doc["height"], float),
-                        pixel_size=np.float64(doc["pixel_size"]), origin=np.asarray(doc["origin"], float))
+    save(buf, height=height, pixel_size=np.float64(doc["pixel_size"]), origin=np.asarray(doc["origin"], float))
     return buf.getvalue()
 
 

@@ -194,7 +194,9 @@ def clear_direction(ctx: RunContext, at, half: float, exclude=()) -> np.ndarray:
     the neighbours and their bumps hide the one looked for. x when nothing is near."""
     import shapely
 
-    others = [o for oid, o in ctx.belief.objects.items() if oid not in exclude and oid not in ctx.belief.lost
+    objects = ctx.belief.objects
+    others = [o for oid, o in ((oid, objects[oid]) for oid in objects.near(at, 2 * half))
+              if oid not in exclude and oid not in ctx.belief.lost
               and math.dist(o.at, at) < 2 * half + (o.length or o.diameter)]
     if not others:
         return np.array([1.0, 0.0])
@@ -317,8 +319,9 @@ def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=Non
     height = seen_height if height is None else height
     o = ctx.belief[obj_id]
     me = Candidate(obj_id, tuple(ctx.position(obj_id) if expected is None else expected), gate, o.diameter)
+    objects = ctx.belief.objects
     others = [Candidate(oid, tuple(ctx.position(oid)), ctx.r_max(t, oid), b.diameter)
-              for oid, b in ctx.belief.objects.items()
+              for oid, b in ((oid, objects[oid]) for oid in objects.near(at, ASSOCIATION_REACH))
               if oid != obj_id and oid not in ctx.belief.lost and math.dist(b.at, at) < ASSOCIATION_REACH]
     assoc = associate(me, others, at, cov, height, noise)
     if assoc.kind == "match":

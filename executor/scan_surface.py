@@ -189,6 +189,7 @@ class SurfaceView:
         self._log, self._stamp = log, stamp
         self.surface: Surface | None = None
         self._rests: dict[tuple, float] = {}
+        self._drawn: dict = {}          # bodies_scene's memo of the checkpoints' bodies on this surface
 
     def _rest(self, body: dict) -> float:
         """:meth:`Surface.rest`, kept by the body's pose and size: a checkpoint redraws every
@@ -208,7 +209,7 @@ class SurfaceView:
         elif topic == ENVIRONMENT:
             self._draw(doc.get("objects", ()), (), COLOURS["object"], t)
         elif topic == CHECKPOINT:
-            self._draw(*believed(doc), COLOURS["belief"], t)
+            self._draw(*believed(doc), COLOURS["belief"], t, self._drawn)
 
     def _on_full_scan(self, doc: dict, t: float | None) -> None:
         try:
@@ -219,8 +220,10 @@ class SurfaceView:
             return
         self.surface = surface
         self._rests.clear()
+        self._drawn.clear()
         self._log(SURFACE_TOPIC, msg, t)
 
-    def _draw(self, bodies, lost, colour, t: float | None) -> None:
+    def _draw(self, bodies, lost, colour, t: float | None, memo: dict | None = None) -> None:
         rest = self._rest if self.surface is not None else None
-        self._log(SURFACE_TOPIC, bodies_scene(bodies, "obj", colour, self._stamp(t), delete=lost, lift=rest), t)
+        self._log(SURFACE_TOPIC, bodies_scene(bodies, "obj", colour, self._stamp(t), delete=lost, lift=rest, memo=memo),
+                  t)

@@ -80,3 +80,25 @@ def test_a_contact_force_built_from_an_angle_gives_that_angle_back(alpha, force,
     sl = np.concatenate([np.full(10, sl_r[0]), np.full(10, sl_w[0])])
     est = contact_angle(sn, sl, np.arange(10), np.arange(10, 20), m, psi, SEED_LEVER)
     assert est is not None and est.angle == pytest.approx(alpha, abs=1e-6) and est.force == pytest.approx(force)
+
+
+def test_the_contact_onset_looked_for_near_the_start_only_ends_the_reference_where_it_did():
+    """:func:`_onset` ``within`` share + SETTLE: the reference it ends (``min(share, onset -
+    SETTLE)``) is the one the whole push's onset ends, to the last bit, where the force
+    rises anywhere and where it rises within a smoothing length or two of where the search
+    stops (the smoothing there reaches beyond it)."""
+    from nanoasm.executor.contact_angle import SETTLE, SMOOTH, _onset
+
+    rng = np.random.default_rng(8)
+    ended = 0
+    for trial in range(600):
+        per_nm, share, force = rng.uniform(0.2, 4.0), rng.uniform(5.0, 60.0), rng.uniform(0.0, 3.0)
+        rise = share + SETTLE + rng.uniform(-2 * SMOOTH, SMOOTH) if trial % 2 else rng.uniform(0.0, 120.0)
+        along = np.cumsum(rng.uniform(0.5, 1.5, int(200 * per_nm)) / per_nm)
+        along -= along[0]
+        sn = rng.normal(0.0, 0.01, along.size) + np.where(along > rise, force * 0.05, 0.0)
+        sl = rng.normal(0.0, 0.01, along.size) + np.where(along > rise, force * 0.03, 0.0)
+        whole = min(share, _onset(sn, sl, along, SEED_LEVER) - SETTLE)
+        assert min(share, _onset(sn, sl, along, SEED_LEVER, share + SETTLE) - SETTLE) == whole
+        ended += whole < share
+    assert ended > 100                                    # the onset ends many references early

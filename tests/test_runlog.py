@@ -286,3 +286,22 @@ def test_the_full_scan_attachment_keeps_the_scan_exactly_and_refuses_other_bytes
     for bad in (b"", b"PK\x03\x04 not a zip", full_scan_bytes({**doc, "height": np.ones(3)})):
         with pytest.raises(ValueError, match="not a full-scan attachment"):
             full_scan_image(bad)
+
+
+def test_the_full_scan_attachment_is_deflated_only_where_that_pays():
+    import io
+    import zipfile
+
+    from nanoasm.executor.scan_attachment import full_scan_bytes, full_scan_image
+
+    rng = np.random.default_rng(5)
+    flat = np.zeros((300, 400))
+    flat[100:140, 200:230] = 40.0                                            # a terrace and a particle
+    noisy = flat + rng.normal(0.0, 0.3, flat.shape)                          # noise in every bit
+    for height, deflated in ((flat, True), (noisy, False)):
+        data = full_scan_bytes({"height": height, "pixel_size": 10.0, "origin": (0.0, 0.0)})
+        with zipfile.ZipFile(io.BytesIO(data)) as zf:
+            kinds = {i.filename: i.compress_type for i in zf.infolist()}
+        assert (kinds["height.npy"] == zipfile.ZIP_DEFLATED) is deflated
+        assert len(data) < height.nbytes / 10 if deflated else len(data) > height.nbytes
+        assert np.array_equal(full_scan_image(data).height, height)

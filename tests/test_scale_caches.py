@@ -7,6 +7,7 @@ view's resting heights."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -23,7 +24,8 @@ from nanoasm.executor.context import RunContext
 from nanoasm.executor.documents import CHECKPOINT, FULL_SCAN
 from nanoasm.executor.estimators import Kalman
 from nanoasm.executor.foxglove_scenes import timestamp
-from nanoasm.executor.reference_choice import object_candidates
+from nanoasm.executor import reference_choice
+from nanoasm.executor.reference_choice import best, best_object, object_candidates
 from nanoasm.executor.references import References
 from nanoasm.executor.scan_drift import EPS, LAM, ScanDrift, filter_theta
 from nanoasm.executor.scan_surface import SURFACE_TOPIC, SurfaceView, surface_grid
@@ -136,6 +138,46 @@ def test_the_reference_choices_batched_terms_are_the_one_by_one_ones():
         assert c.seconds == pytest.approx(seconds, rel=1e-9)
 
 
+@pytest.mark.parametrize("made_up", [False, True])
+def test_the_reference_chosen_without_weighing_every_candidate_is_the_one_chosen_of_all(monkeypatch, made_up):
+    """The real gains lie close together (the nearest candidate wins); made-up ones, each at
+    most the offset's variance as a real one is, put the best anywhere in the order."""
+    monkeypatch.setattr(reference_choice, "BATCH", 3)            # small batches: most are never weighed
+    weighed = []
+    terms = reference_choice._terms
+
+    def spy(ctx, est, t, ids, R):
+        weighed.append(len(ids))
+        cov, gains = terms(ctx, est, t, ids, R)
+        trace = np.trace(est.filter.offset(est.clamp(t)).cov)
+        assert np.all(gains <= trace)                              # what the bound rests on
+        if made_up:
+            gains = np.array([trace * (0.02 + 0.98 * (int(oid[1:]) * 7919 % 97) / 96) for oid in ids])
+        return cov, gains
+
+    monkeypatch.setattr(reference_choice, "_terms", spy)
+    rng = np.random.default_rng(11)
+    objs = [EnvObject(f"o{k}", "particle", tuple(rng.uniform(200, 3800, 2)), float(rng.uniform(60, 120)))
+            for k in range(40)]
+    est, belief, refs = _kalman(objs)
+    ctx = RunContext(InstrumentConfig(), OPTS, est, belief, refs, moving={"o1", "o7"})
+    pruned = 0
+    for k, t in enumerate((20.0, 45.0, 80.0, 200.0, 600.0)):
+        if k % 2:
+            oid = f"o{3 * k}"
+            est.measure(oid, np.asarray(belief[oid].at) + rng.normal(0, 2, 2), np.eye(2), t - 5.0, refs, [], set())
+        for here in (None, rng.uniform(0, 4000, 2), rng.uniform(0, 4000, 2)):
+            ctx.here = here
+            for exclude in ((), ("o4", "o9"), tuple(f"o{j}" for j in range(0, 40, 2))):
+                everything = best([c for c in object_candidates(ctx, est, t, 25.0) if c.id not in exclude])
+                weighed.clear()
+                got = best_object(ctx, est, t, 25.0, exclude)
+                assert (got.id, got.rate, got.gain, got.seconds) == (everything.id, everything.rate, everything.gain,
+                                                                     everything.seconds)
+                pruned += sum(weighed) < 40 - len(exclude) - 2
+    assert pruned >= 10                                              # the bound does leave candidates out
+
+
 points = st.lists(st.tuples(st.floats(0, 400), st.floats(0, 400)), min_size=0, max_size=30)
 
 
@@ -169,3 +211,74 @@ def test_the_3d_views_resting_heights_follow_the_objects_as_they_move():
         topic, msg = logged[-1]
         assert topic == SURFACE_TOPIC
         assert decoded(msg).entities[0].spheres[0].pose.position.z == pytest.approx(surface.rest(body) + 2.0)
+
+
+def test_bodies_drawn_from_the_last_checkpoints_parts_are_drawn_as_anew():
+    from nanoasm.executor.foxglove_scenes import COLOURS, bodies_scene
+    from nanoasm.executor.json_parts import kept
+
+    h = np.zeros((80, 80))
+    h[20:26, 30:36] = 40.0
+    surface = surface_grid(h, 1.0)
+    lifts = []
+
+    def lift(b):
+        lifts.append(b["id"])
+        return surface.rest(b)
+
+    rng = np.random.default_rng(2)
+    parts = {f"o{k}": kept({"id": f"o{k}", "at": list(rng.uniform(5, 75, 2)), "diameter": 4.0}) for k in range(12)}
+    parts["r"] = kept({"id": "r", "at": [33.0, 23.0], "diameter": 3.0, "length": 20.0, "angle": 30.0})
+    memo, stamp = {}, timestamp(5)
+    for step in range(6):
+        moved = set(rng.choice(sorted(parts), 3, replace=False)) if step else set(parts)
+        if step:                                        # some move (new parts), one becomes a plain dict
+            for oid in moved:
+                parts[oid] = kept({**parts[oid], "at": list(rng.uniform(5, 75, 2))})
+            parts["o0"] = dict(parts["o0"])
+        lifts.clear()
+        bodies = [*parts.values(), {"id": "bad", "at": None, "diameter": 1.0}]
+        got = bodies_scene(bodies, "obj", COLOURS["belief"], stamp, delete=["gone"], lift=lift, memo=memo)
+        fresh = bodies_scene(bodies, "obj", COLOURS["belief"], stamp, delete=["gone"], lift=surface.rest)
+        assert got.encode() == fresh.encode()
+        assert sorted(lifts) == sorted(moved | ({"o0"} if step else set()))    # the moved and the plain dict
+        assert set(memo) == {id(b) for b in parts.values() if type(b) is not dict}
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(0, 2000), st.floats(0, 2000), st.floats(20, 120), st.booleans()), min_size=1,
+                max_size=25),
+       st.lists(st.tuples(st.integers(0, 40), st.floats(0, 2000), st.floats(0, 2000), st.sampled_from("mad")),
+                max_size=15),
+       st.tuples(st.floats(0, 2000), st.floats(0, 2000)), st.floats(0, 800))
+def test_the_beliefs_index_finds_every_object_within_reach_as_they_move(objs, changes, at, reach):
+    from nanoasm.executor.belief import Objects
+
+    def body(k, x, y, d, rod):
+        return EnvObject(f"o{k}", "rod" if rod else "particle", (x, y), d, 10.0 if rod else None,
+                         6 * d if rod else None)
+
+    objects = Objects((f"o{k}", body(k, *o)) for k, o in enumerate(objs))
+    for k, x, y, what in changes:
+        objects.near(at, reach)                                   # an index to keep up to date
+        oid = f"o{k}"
+        if what == "m" and oid in objects:                        # moved, and grown
+            o = objects[oid]
+            objects[oid] = replace(o, at=(x, y), diameter=o.diameter * 2, length=o.length and o.length * 2)
+        elif what == "a":
+            objects[oid] = body(k, x, y, 50.0, k % 2 == 0)
+        elif what == "d":
+            objects.pop(oid, None)
+        near = objects.near(at, reach)
+        want = [oid for oid, o in objects.items() if math.dist(o.at, at) < reach + (o.length or o.diameter)]
+        assert [oid for oid in near if oid in want] == want       # all of them, in order
+
+
+def test_an_object_that_grows_in_place_is_found_by_the_beliefs_index():
+    from nanoasm.executor.belief import Objects
+
+    objects = Objects(o1=EnvObject("o1", "particle", (150.0, 0.0), 40.0),
+                      o2=EnvObject("o2", "particle", (900.0, 0.0), 40.0))
+    assert objects.near((0.0, 0.0), 100.0) == []
+    objects["o1"] = replace(objects["o1"], diameter=80.0)                    # its row kept, its extent larger
+    assert objects.near((0.0, 0.0), 100.0) == ["o1"]
