@@ -25,6 +25,13 @@ def _all_inside(geoms: np.ndarray, radius: float, area: tuple[float, float]) -> 
                 and (y1 <= h - radius).all())
 
 
+def inside_xy(xy: np.ndarray, radius: float, area: tuple[float, float]) -> bool:
+    """:func:`_all_inside` from the points (n, 2) whose bounds are the footprints' cores'."""
+    x, y = xy[:, 0], xy[:, 1]
+    w, h = area
+    return bool(x.min() >= radius and y.min() >= radius and x.max() <= w - radius and y.max() <= h - radius)
+
+
 class FreeSpace:
     """Clearance queries against fixed geometry and movable bodies in an area.
 
@@ -237,16 +244,18 @@ class Nearby:
         return bool((d < reach + radii[keep] - 1e-9).any())
 
     def all_free(self, geoms: np.ndarray, radius: float, ignore: Iterable[str] = (),
-                 exempt_fixed: frozenset[int] = frozenset(), clearance: float | None = None) -> bool:
+                 exempt_fixed: frozenset[int] = frozenset(), clearance: float | None = None,
+                 inside: bool = False) -> bool:
         """:meth:`FreeSpace.all_free` for footprints whose cores lie in the box, of a
-        radius and clearance at most those it was made for."""
+        radius and clearance at most those it was made for. ``inside``: the caller has
+        found every footprint inside the area (:func:`inside_xy`)."""
         clear = self.clearance if clearance is None else clearance
         if radius > self._radius + 1e-12 or clear > self._clear + 1e-12:
             raise ValueError("a footprint beyond the reach this Nearby was made for")
         geoms = np.asarray(geoms, dtype=object)
         if geoms.size == 0:
             return True
-        if not _all_inside(geoms, radius, self.area):
+        if not inside and not _all_inside(geoms, radius, self.area):
             return False
         reach = radius + clear
         if self._f_idx.size and self._hit(geoms, reach, self._f_cores, self._f_r,

@@ -34,7 +34,7 @@ from nanoasm.world.pivot import RodPose, pivot_position, rod_step
 
 from . import ompl_setup, rod_why
 from .assign import axis_error
-from .freespace import FreeSpace
+from .freespace import FreeSpace, inside_xy
 from .ompl_setup import Budget
 from .options import PlanOptions
 from .rod_horizon import plan_swings
@@ -313,17 +313,22 @@ class RodController:
         c, s = _unit(rod.angle)
         x, y = macro.sweep[..., 0], macro.sweep[..., 1]
         ends = np.stack([rod.at[0] + c * x - s * y, rod.at[1] + s * x + c * y], axis=-1)
-        cores = _cores_of(ends, _half(rod))
         tip_r = self.options.tip_radius
         downs_xy = np.array([w0 for w0, _ in tips])
+        # inside the area, from the coordinates themselves (a core's bounds are its ends'),
+        # before any geometry is made: the search tries many macros off the area's edge
+        if not (inside_xy(ends.reshape(-1, 2), rod.radius, self.space.area)
+                and inside_xy(downs_xy, tip_r, self.space.area)):
+            return None
+        cores = _cores_of(ends, _half(rod))
         downs = shapely.points(downs_xy)
         every = np.concatenate([ends.reshape(-1, 2), downs_xy])
         lo, hi = every.min(axis=0), every.max(axis=0)
         clear = self.space.clearance if self.clearance is None else self.clearance
         near = self.space.nearby((lo[0], lo[1], hi[0], hi[1]), max(tip_r, rod.radius), max(clear, 0.0))
         # every tip and every sweep clear, or the macro is not taken (none is tried alone)
-        if not (near.all_free(downs, tip_r, (rod.id,), clearance=0.0)
-                and near.all_free(cores, rod.radius, (rod.id,), self.exempt, self.clearance)):
+        if not (near.all_free(downs, tip_r, (rod.id,), clearance=0.0, inside=True)
+                and near.all_free(cores, rod.radius, (rod.id,), self.exempt, self.clearance, inside=True)):
             return None
         return [RodPush(tip, _place(rod, local)) for tip, local in zip(tips, macro.poses)]
 
