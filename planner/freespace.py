@@ -25,13 +25,6 @@ def _all_inside(geoms: np.ndarray, radius: float, area: tuple[float, float]) -> 
                 and (y1 <= h - radius).all())
 
 
-def inside_xy(xy: np.ndarray, radius: float, area: tuple[float, float]) -> bool:
-    """:func:`_all_inside` from the points (n, 2) whose bounds are the footprints' cores'."""
-    x, y = xy[:, 0], xy[:, 1]
-    w, h = area
-    return bool(x.min() >= radius and y.min() >= radius and x.max() <= w - radius and y.max() <= h - radius)
-
-
 class FreeSpace:
     """Clearance queries against fixed geometry and movable bodies in an area.
 
@@ -248,7 +241,7 @@ class Nearby:
                  inside: bool = False) -> bool:
         """:meth:`FreeSpace.all_free` for footprints whose cores lie in the box, of a
         radius and clearance at most those it was made for. ``inside``: the caller has
-        found every footprint inside the area (:func:`inside_xy`)."""
+        found every footprint inside the area (:meth:`FreeSpace.inside_box` of their bounds)."""
         clear = self.clearance if clearance is None else clearance
         if radius > self._radius + 1e-12 or clear > self._clear + 1e-12:
             raise ValueError("a footprint beyond the reach this Nearby was made for")

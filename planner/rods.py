@@ -34,7 +34,7 @@ from nanoasm.world.pivot import RodPose, pivot_position, rod_step
 
 from . import ompl_setup, rod_why
 from .assign import axis_error
-from .freespace import FreeSpace, inside_xy
+from .freespace import FreeSpace
 from .ompl_setup import Budget
 from .options import PlanOptions
 from .rod_horizon import plan_swings
@@ -317,13 +317,13 @@ class RodController:
         downs_xy = np.array([w0 for w0, _ in tips])
         # inside the area, from the coordinates themselves (a core's bounds are its ends'),
         # before any geometry is made: the search tries many macros off the area's edge
-        if not (inside_xy(ends.reshape(-1, 2), rod.radius, self.space.area)
-                and inside_xy(downs_xy, tip_r, self.space.area)):
+        flat = ends.reshape(-1, 2)
+        e_lo, e_hi, d_lo, d_hi = flat.min(axis=0), flat.max(axis=0), downs_xy.min(axis=0), downs_xy.max(axis=0)
+        if not (self.space.inside_box(*e_lo, *e_hi, rod.radius) and self.space.inside_box(*d_lo, *d_hi, tip_r)):
             return None
         cores = _cores_of(ends, _half(rod))
         downs = shapely.points(downs_xy)
-        every = np.concatenate([ends.reshape(-1, 2), downs_xy])
-        lo, hi = every.min(axis=0), every.max(axis=0)
+        lo, hi = np.minimum(e_lo, d_lo), np.maximum(e_hi, d_hi)
         clear = self.space.clearance if self.clearance is None else self.clearance
         near = self.space.nearby((lo[0], lo[1], hi[0], hi[1]), max(tip_r, rod.radius), max(clear, 0.0))
         # every tip and every sweep clear, or the macro is not taken (none is tried alone)

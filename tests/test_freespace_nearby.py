@@ -15,7 +15,7 @@ from hypothesis import given, settings, strategies as st
 
 from nanoasm.bodies import Body
 from nanoasm.planner import PlanOptions
-from nanoasm.planner.freespace import FreeSpace, _all_inside, inside_xy
+from nanoasm.planner.freespace import FreeSpace, _all_inside
 from nanoasm.planner.rods import _cores_of, _half, _place, _sweep_ends, capsule_cores, capsule_ends, macro_library
 
 
@@ -80,9 +80,12 @@ def test_a_macros_sweep_moved_to_a_pose_is_the_sweep_made_there(x, y, angle, k):
 @given(x=st.floats(-100, 2100), y=st.floats(-100, 2100), angle=st.floats(-180, 180),
        length=st.sampled_from([0.0, 40.0, 600.0, 1900.0]), radius=st.floats(0, 80))
 def test_inside_from_the_ends_is_inside_from_the_cores(x, y, angle, length, radius):
-    """The search's area check from a sweep's end coordinates (``inside_xy``) answers as
-    the geometries' bounds do (``_all_inside``), for segments and for points (no length)."""
+    """The search's area check from a sweep's end coordinates (``inside_box`` of their
+    bounds, as ``RodController._realise`` makes it) answers as the geometries' bounds do
+    (``_all_inside``), for segments and for points (no length)."""
     t = np.linspace(0.0, 1.0, 9)
     ends = capsule_ends(x + 90 * t, y - 70 * t, angle + 30 * t, length / 2)
-    area = (2000.0, 2000.0)
-    assert inside_xy(ends.reshape(-1, 2), radius, area) == _all_inside(_cores_of(ends, length / 2), radius, area)
+    space = FreeSpace((2000.0, 2000.0), [], {}, 0.0)
+    flat = ends.reshape(-1, 2)
+    assert space.inside_box(*flat.min(axis=0), *flat.max(axis=0), radius) == \
+        _all_inside(_cores_of(ends, length / 2), radius, space.area)
