@@ -140,7 +140,7 @@ def _onset(sn: np.ndarray, sl: np.ndarray, along: np.ndarray, lever: Cantilever,
     Looked for ``within`` nm of the start only (inf if it is not there): the force is
     smoothed over the samples up to there and the smoothing's reach beyond."""
     gx, gy = _gains(lever)
-    first = np.flatnonzero(along <= SETTLE)
+    first = np.arange(int(np.searchsorted(along, SETTLE, side="right")))     # along never falls
     if first.size < 5:
         first = np.arange(min(5, along.size))
     per_nm = along.size / max(float(along[-1]), 1e-9)
@@ -160,12 +160,21 @@ class PushSignals:
     (:meth:`angle`): the reference is the first ``REFERENCE_SHARE × lead`` nm of sliding
     after touch-down, cut short where the contact force rises if the object was met
     sooner (at least :data:`MIN_REFERENCE` nm, else no angle); the window is the last
-    :data:`WINDOW` nm in contact."""
+    :data:`WINDOW` nm in contact.
+
+    A tracked push reads the angle after every chunk of a hundred samples. Given a
+    ``key`` that changes whenever ``compensate`` would (the monitor's free-air baselines),
+    :meth:`angle` compensates each chunk once and keeps the samples in contact and their
+    distance along the push as they grow, instead of all of them again each time (a push
+    of n samples cost n²/100); it reads only the samples its windows take. The values
+    are those of the whole computation (``key`` None), which a test checks."""
 
     def __init__(self, lead: float):
         self.lead = float(lead)
         self.push: list[tuple[np.ndarray, ...]] = []      # (S_n, S_l, x, y) of push samples
         self.lifted: list[tuple[np.ndarray, ...]] = []    # the same of lifted travel
+        self._kept: _Contact | None = None                # the samples in contact, compensated, for a key
+        self._slope: tuple | None = None                  # the lifted samples compensated, for a key
 
     def add(self, s_n, s_l, xy, pushing: np.ndarray, lifted: np.ndarray) -> None:
         """One chunk: raw signals, scanner ``xy`` ``(n, 2)`` nm, and which samples push
@@ -174,29 +183,93 @@ class PushSignals:
             if mask.any():
                 keep.append((s_n[mask], s_l[mask], xy[mask, 0], xy[mask, 1]))
 
-    def angle(self, compensate, level: float, motion, psi: float, lever: Cantilever) -> ContactAngle | None:
+    def angle(self, compensate, level: float, motion, psi: float, lever: Cantilever,
+              key=None) -> ContactAngle | None:
         """α at the push's end from the samples in contact (compensated S̄_n at least half
         the preload's ``level``); ``compensate(s_n, s_l, xy)`` gives (S̄_n, S̄_l) (eq.
-        3.28, the push monitor's). None without enough samples or contact force."""
+        3.28, the push monitor's), the same for as long as ``key`` is (None: compensate
+        every sample anew). None without enough samples or contact force."""
         if not self.push:
             return None
-        s_n, s_l, x, y = (np.concatenate(c) for c in zip(*self.push))
-        sn, sl = compensate(s_n, s_l, np.column_stack([x, y]))
-        down = sn >= 0.5 * level
-        sn, sl, x, y = sn[down], sl[down], x[down], y[down]
-        if x.size < 2:
-            return None
-        along = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+        if key is None:
+            sn, sl, x, y = _in_contact(compensate, level, *(np.concatenate(c) for c in zip(*self.push)))
+            if x.size < 2:
+                return None
+            along = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+            span = (float(x.min()), float(x.max())) if x.size else None
+        else:
+            kept = self._kept
+            if kept is None or kept.key != (key, level):
+                kept = self._kept = _Contact((key, level))
+            for chunk in self.push[kept.chunks:]:
+                kept.add(*_in_contact(compensate, level, *chunk))
+            kept.chunks = len(self.push)
+            sn, sl, x, along = kept.view()
+            if x.size < 2:
+                return None
+            span = kept.span
         if along[-1] < self.lead + WINDOW:           # too short to have both apart
             return None
         share = REFERENCE_SHARE * self.lead                 # an onset beyond share + SETTLE does not matter
         end = min(share, _onset(sn, sl, along, lever, share + SETTLE) - SETTLE)
         if end < MIN_REFERENCE:
             return None
-        reference = np.flatnonzero(along <= end)
-        window = np.flatnonzero(along >= along[-1] - WINDOW)
-        slope = 0.0
-        if self.lifted:
+        reference = np.arange(int(np.searchsorted(along, end, side="right")))          # along never falls
+        window = np.arange(int(np.searchsorted(along, along[-1] - WINDOW, side="left")), along.size)
+        slope = self._lifted_slope(compensate, key, span) if self.lifted else 0.0
+        take = np.concatenate([reference, window])          # the samples the two windows read, alone
+        return contact_angle(sn[take], sl[take], np.arange(reference.size), np.arange(reference.size, take.size),
+                             motion, psi, lever, x[take], slope)
+
+    def _lifted_slope(self, compensate, key, span) -> float:
+        """:func:`baseline_slope` of the lifted samples about the contact's x ``span``,
+        compensated once for a ``key``."""
+        got = self._slope
+        if key is None or got is None or got[0] != (key, len(self.lifted)):
             ln, ll, lx, ly = (np.concatenate(c) for c in zip(*self.lifted))
-            slope = baseline_slope(lx, compensate(ln, ll, np.column_stack([lx, ly]))[1], (float(x.min()), float(x.max())))
-        return contact_angle(sn, sl, reference, window, motion, psi, lever, x, slope)
+            got = ((key, len(self.lifted)), lx, compensate(ln, ll, np.column_stack([lx, ly]))[1])
+            if key is not None:
+                self._slope = got
+        return baseline_slope(got[1], got[2], span)
+
+
+def _in_contact(compensate, level: float, s_n, s_l, x, y) -> tuple[np.ndarray, ...]:
+    """Compensated (S̄_n, S̄_l, x, y) of the samples whose S̄_n is at least half ``level``."""
+    sn, sl = compensate(s_n, s_l, np.column_stack([x, y]))
+    down = sn >= 0.5 * level
+    return sn[down], sl[down], x[down], y[down]
+
+
+class _Contact:
+    """The samples in contact of a push as they come, and their distance along it
+    (nm, from the first), in arrays that grow by doubling: ``np.cumsum`` continued from
+    the last distance adds in the order it adds over the whole."""
+
+    def __init__(self, key):
+        self.key, self.chunks, self.n = key, 0, 0
+        self.arrays = [np.empty(0) for _ in range(5)]        # S̄_n, S̄_l, x, y, along
+        self.span: tuple[float, float] | None = None
+
+    def add(self, sn, sl, x, y) -> None:
+        if not x.size:
+            return
+        if self.n:
+            last = self.n - 1
+            steps = np.hypot(np.diff(x, prepend=self.arrays[2][last]), np.diff(y, prepend=self.arrays[3][last]))
+            along = np.cumsum(np.concatenate([[self.arrays[4][self.n - 1]], steps]))[1:]
+        else:
+            along = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
+        lo, hi = float(x.min()), float(x.max())
+        self.span = (lo, hi) if self.span is None else (min(self.span[0], lo), max(self.span[1], hi))
+        end = self.n + x.size
+        if end > self.arrays[0].size:
+            size = max(2 * self.arrays[0].size, end, 1024)
+            self.arrays = [np.concatenate([a[:self.n], np.empty(size - self.n)]) for a in self.arrays]
+        for a, v in zip(self.arrays, (sn, sl, x, y, along)):
+            a[self.n:end] = v
+        self.n = end
+
+    def view(self) -> tuple[np.ndarray, ...]:
+        """(S̄_n, S̄_l, x, along) so far (views)."""
+        sn, sl, x, _, along = (a[:self.n] for a in self.arrays)
+        return sn, sl, x, along

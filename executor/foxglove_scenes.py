@@ -67,17 +67,20 @@ def grid(doc: dict, stamp):
                 data=h.tobytes())
 
 
-def bodies_scene(bodies, prefix: str, colour, stamp, delete=(), lift=None, memo: dict | None = None):
+def bodies_scene(bodies, prefix: str, colour, stamp, delete=(), lift=None, memo: dict | None = None) -> bytes:
     """Bodies (``Body.to_dict()`` documents): particles as spheres, rods and wires as
     boxes along their axis, with their ids, each as entity ``prefix:id``; the entities
     ``prefix:id`` of ``delete`` removed. Each rests on z = 0, or on ``lift(body)`` (nm).
+    The encoded ``foxglove.SceneUpdate`` (protobuf; the run log's channels take it as it
+    is): each body's entity is encoded once by its pose and kept, and the message is those
+    bytes with ``stamp`` put before each (a checkpoint draws a thousand bodies, most of
+    them as they were). The bytes are the message's own encoding (a test builds it).
     ``memo``: a dict the caller keeps from one call to the next with the same ``prefix``,
     ``colour`` and ``lift``: a body that is the very same unchanging part
-    (:class:`~.json_parts.Kept`) as in the last call is drawn as then, not lifted again (a
-    checkpoint redraws a thousand bodies, most of them the parts the last one held)."""
-    from foxglove.messages import SceneEntityDeletion, SceneUpdate
-
-    entities, drawn = [], {}
+    (:class:`~.json_parts.Kept`) as in the last call is drawn as then, not lifted again."""
+    from foxglove.messages import SceneEntity, SceneEntityDeletion, SceneUpdate
+    head = SceneEntity(timestamp=stamp).encode()        # field 1, the first an entity's encoding holds
+    parts, drawn = [], {}
     for b in bodies:
         hit = memo.get(id(b)) if memo is not None and type(b) is Kept else None
         if hit is None or hit[0] is not b:
@@ -86,17 +89,31 @@ def bodies_scene(bodies, prefix: str, colour, stamp, delete=(), lift=None, memo:
                 continue
         if memo is not None and type(b) is Kept:
             drawn[id(b)] = hit
-        entities.append(_entity(hit[1], stamp, texts=[hit[2][0]], **hit[2][1]))
+        parts.append(_ENTITIES + _varint(len(head) + len(hit[1])) + head + hit[1])
     if memo is not None:
         memo.clear()
         memo.update(drawn)
     deletions = [SceneEntityDeletion(timestamp=stamp, id=f"{prefix}:{i}") for i in delete]
-    return SceneUpdate(entities=entities, deletions=deletions)
+    return SceneUpdate(deletions=deletions).encode() + b"".join(parts)   # field 1, deletions, comes first
+
+
+#: The key of ``SceneUpdate.entities`` (field 2, length-delimited).
+_ENTITIES = b"\x12"
+
+
+def _varint(n: int) -> bytes:
+    """Protobuf's base-128 varint of ``n`` >= 0."""
+    out = bytearray()
+    while n >= 0x80:
+        out.append((n & 0x7F) | 0x80)
+        n >>= 7
+    out.append(n)
+    return bytes(out)
 
 
 def _drawn(b, prefix: str, colour, lift) -> tuple | None:
-    """(``b``, entity id, its primitives) of :func:`bodies_scene`; None for a body without a
-    position or size."""
+    """(``b``, its entity encoded without a timestamp) of :func:`bodies_scene`; None for a
+    body without a position or size."""
     try:
         x, y = (float(v) for v in b["at"])
         d = float(b["diameter"])
@@ -104,25 +121,35 @@ def _drawn(b, prefix: str, colour, lift) -> tuple | None:
         return None
     z = lift(b) if lift is not None else 0.0
     length, angle = b.get("length"), b.get("angle")
-    key = (tuple(colour), str(b.get("id", "")), x, y, d, z,
+    key = (prefix, tuple(colour), str(b.get("id", "")), x, y, d, z,
            *((float(length), float(angle)) if length is not None and angle is not None else ()))
-    shapes = _SHAPES.get(key)
-    if shapes is None:
-        if len(_SHAPES) >= SHAPES_KEPT:
-            _SHAPES.clear()
-        shapes = _SHAPES[key] = _shapes(key)
-    return b, f"{prefix}:{b.get('id')}", shapes
+    body = _BODIES.get(key)
+    if body is None:
+        if len(_BODIES) >= BODIES_KEPT:
+            _BODIES.clear()
+        body = _BODIES[key] = _entity_bytes(key)
+    return b, body
 
 
-#: A body's primitives by (colour, id, x, y, diameter, z[, length, angle]): a run log draws
-#: every body after every push (twice: ``/belief`` and the 3-D view), and between two
-#: pushes most have not moved (a 1000-object run: 10 s of its compute to make them anew).
-_SHAPES: dict[tuple, tuple] = {}
-SHAPES_KEPT = 50_000
+#: A body's entity encoded without its timestamp, by (prefix, colour, id, x, y, diameter, z[,
+#: length, angle]): a run log draws every body after every push (twice: ``/belief`` and the
+#: 3-D view), and between two pushes most have not moved (a 1000-object run: 10 s of its
+#: compute to make their primitives anew, 6 ms a push to make and encode their entities).
+_BODIES: dict[tuple, bytes] = {}
+BODIES_KEPT = 50_000
+
+
+def _entity_bytes(key: tuple) -> bytes:
+    """The ``SceneEntity`` of :func:`bodies_scene`'s ``key``, encoded, without a timestamp."""
+    from foxglove.messages import SceneEntity
+
+    text, shapes = _shapes(key[1:])
+    return SceneEntity(frame_id="layout", id=f"{key[0]}:{key[2]}", texts=[text], **shapes).encode()
 
 
 def _shapes(key: tuple) -> tuple:
-    """(label, {"spheres" or "cubes": [primitive]}) of :func:`bodies_scene`'s ``key``."""
+    """(label, {"spheres" or "cubes": [primitive]}) of a body drawn by :func:`bodies_scene`:
+    ``key`` is (colour, id, x, y, diameter, z[, length, angle])."""
     from foxglove.messages import Color, CubePrimitive, SpherePrimitive, TextPrimitive, Vector3
 
     colour, ident, x, y, d, z, *rod = key

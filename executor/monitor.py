@@ -85,6 +85,12 @@ class PushMonitor:
             self.s_n0 = float(np.median(s_n))
             self.s_l0 = float(np.median(s_l))
 
+    @property
+    def baseline_key(self) -> tuple[float, float]:
+        """What :meth:`compensated` depends on beyond its samples and the fixed maps and
+        lever: the free-air baselines (a key under which its values may be kept)."""
+        return self.s_n0, self.s_l0
+
     def compensated(self, s_n: np.ndarray, s_l: np.ndarray, xy=None) -> tuple[np.ndarray, np.ndarray]:
         """``(S̄n, S̄l)`` (eq. 3.28) of samples taken at scanner positions ``xy`` ``(n, 2)`` nm."""
         if self.baselines is not None and xy is not None:

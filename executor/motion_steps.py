@@ -146,7 +146,8 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
             v = monitor.check(block.s_n[pushing], block.s_l[pushing], xy[pushing])
             verdict = v if v.failed else None
             if tracked and verdict is None:
-                angle = kept.angle(monitor.compensated, monitor.level, path[-1] - path[-2], cfg.scan_angle, lever)
+                angle = kept.angle(monitor.compensated, monitor.level, path[-1] - path[-2], cfg.scan_angle, lever,
+                                   key=monitor.baseline_key)
                 end = chunk.first + len(chunk) - 1
                 if angle is not None and abs(angle.angle) >= track:
                     stop_at, stop_angle = end, angle
@@ -172,7 +173,7 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
                           felt=stop_angle is not None or pressing)
     elif kept is not None and not verdict.failed:
         verdict = replace(verdict, contact=kept.angle(monitor.compensated, monitor.level, path[-1] - path[-2],
-                                                      cfg.scan_angle, lever))
+                                                      cfg.scan_angle, lever, key=monitor.baseline_key))
     if verdict.failed or stop_at is not None:
         yield from lift(ctx)
     ctx.ledger.times["push"] += n_push / cfg.sample_rate

@@ -216,10 +216,11 @@ class RunLog:
     def _channel(self, topic: str, schema: str, json_schema: dict | None) -> Any:
         """A channel of a Foxglove message (``foxglove.*``), or of JSON with ``json_schema``."""
         fg = self._fg
-        from foxglove import channels as fc
+        from foxglove import messages as fm
 
-        if schema.startswith("foxglove."):
-            return getattr(fc, schema.split(".", 1)[1] + "Channel")(topic, context=self.context)
+        if schema.startswith("foxglove."):     # the message's protobuf schema; _log encodes (or is given bytes)
+            kind = getattr(fm, schema.split(".", 1)[1])
+            return fg.Channel(topic, context=self.context, message_encoding="protobuf", schema=kind.get_schema())
         return fg.Channel(topic, context=self.context, message_encoding="json",
                           schema=fg.Schema(name=schema, encoding="jsonschema",
                                            data=json.dumps(json_schema).encode()))
@@ -238,8 +239,8 @@ class RunLog:
         if t is not None and math.isfinite(t):
             self._t = max(self._t, float(t))
         ch = self.channels[topic]
-        ch.log(to_json(msg) if isinstance(msg, (dict, list)) else msg,
-               log_time=nanoseconds(self._t if t is None else t))
+        data = msg if isinstance(msg, bytes) else to_json(msg) if isinstance(msg, (dict, list)) else msg.encode()
+        ch.log(data, log_time=nanoseconds(self._t if t is None else t))
 
     def flush(self) -> None:
         if self.writer is not None and not self._closed:

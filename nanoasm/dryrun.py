@@ -114,21 +114,25 @@ class _PushLog:
 
     def __init__(self, sim: SimulatedAFM):
         self.sim = sim
-        self.rows: list[tuple[str, tuple, tuple, dict]] = []
+        self.rows: list[tuple[str, tuple, tuple, tuple]] = []      # ..., every true body (Body) then
 
     def __call__(self, topic: str, doc) -> None:
         if topic == "push":
             d = as_dict(doc)
             self.rows.append((d["op"]["object"], tuple(d["before"]), tuple(d["op"]["expect"]["at"]),
-                              {b.id: b.at for b in self.sim.truth()}))
+                              self.sim.truth()))
 
     def ends(self, sim: SimulatedAFM, summary: RunSummary, ids: dict[str, str]) -> tuple[PushEnd, ...]:
         ox, oy = sim.true_offset(summary.epoch)
         dx, dy = ox - summary.origin[0], oy - summary.origin[1]
         out = []
+        where: dict[str, int] = {}                  # the place of each id in truth(), the same each push
         for obj, before, expect, truth in self.rows:
-            at = truth.get(ids.get(obj, ""))
-            if at is not None:
+            if not where:
+                where = {b.id: k for k, b in enumerate(truth)}
+            k = where.get(ids.get(obj, ""))
+            if k is not None:
+                at = truth[k].at
                 out.append(PushEnd(obj, math.dist(before, expect), math.dist((at[0] + dx, at[1] + dy), expect)))
         return tuple(out)
 

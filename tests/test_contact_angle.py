@@ -102,3 +102,50 @@ def test_the_contact_onset_looked_for_near_the_start_only_ends_the_reference_whe
         assert min(share, _onset(sn, sl, along, SEED_LEVER, share + SETTLE) - SETTLE) == whole
         ended += whole < share
     assert ended > 100                                    # the onset ends many references early
+
+
+def _stream(rng, monitor: PushMonitor):
+    """A push's chunks as a streamed push hands them over: lifted travel first, then
+    samples pushing (a few in flight, below half the contact level), a contact force
+    rising where the object is met, some lifted samples at the end. Yields ``(S_n, S_l,
+    xy, pushing, lifted)`` per chunk, and sometimes new free-air baselines first."""
+    lead, n = rng.uniform(10.0, 40.0), int(rng.integers(200, 1500))
+    length = rng.uniform(40.0, 300.0)
+    x = np.linspace(-200.0, length, n) + rng.normal(0.0, 0.2, n)
+    y = rng.normal(0.0, 0.3, n) + 0.01 * x
+    lifted = x < 0.0
+    lifted[-int(rng.integers(0, 20)):] = True
+    pushing = ~lifted
+    met = x > lead
+    level = monitor.level
+    sn = np.where(lifted, 0.01, level * (1.0 + rng.normal(0.0, 0.05, n)) + np.where(met, 0.02, 0.0))
+    sn[pushing & (rng.random(n) < 0.05)] = 0.1 * level            # in flight: not in contact
+    sl = rng.normal(0.3, 0.004, n) + np.where(met & pushing, rng.uniform(-0.3, 0.3), 0.0) + 1e-4 * x
+    i = 0
+    while i < n:
+        k = int(rng.integers(1, 150))
+        yield slice(i, i + k), sn, sl, np.column_stack([x, y]), pushing, lifted
+        i += k
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_the_angle_read_as_the_samples_come_is_the_whole_computations(seed):
+    """:meth:`PushSignals.angle` with the monitor's baseline key (each chunk compensated
+    once, the contact samples and their distance along the push grown as they come, the
+    windows read alone) gives the angle the whole computation gives from every sample,
+    to the last bit, after every chunk: also when the free-air baselines change between
+    reads (the key), and the level."""
+    rng = np.random.default_rng(seed)
+    monitor = PushMonitor(50.0, lever=SEED_LEVER)
+    fast, whole = PushSignals(LEAD), PushSignals(LEAD)
+    read = 0
+    for sl_, sn, sl, xy, pushing, lifted in _stream(rng, monitor):
+        if rng.random() < 0.05:
+            monitor.set_baseline(sn[lifted][:30] + rng.normal(0, 0.01), sl[lifted][:30])
+        for kept in (fast, whole):
+            kept.add(sn[sl_], sl[sl_], xy[sl_], pushing[sl_], lifted[sl_])
+        args = (monitor.compensated, monitor.level, (1.0, 0.01), 30.0, SEED_LEVER)
+        got, want = fast.angle(*args, key=monitor.baseline_key), whole.angle(*args)
+        assert got == want
+        read += got is not None
+    assert read > 0                            # angles were read, not only None

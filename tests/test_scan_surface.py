@@ -31,13 +31,15 @@ def from_glb(data: bytes) -> trimesh.Trimesh:
 
 
 def decoded(msg):
-    """A Foxglove message as the log's reader decodes it (protobuf, fields readable)."""
+    """A Foxglove message as the log's reader decodes it (protobuf, fields readable); bytes
+    are an encoded ``foxglove.SceneUpdate`` (:func:`~nanoasm.executor.foxglove_scenes.bodies_scene`)."""
+    from foxglove.messages import SceneUpdate
     from mcap.records import Schema
     from mcap_protobuf.decoder import DecoderFactory
 
-    s = msg.get_schema()
+    s = SceneUpdate.get_schema() if isinstance(msg, bytes) else msg.get_schema()
     return DecoderFactory().decoder_for("protobuf", Schema(id=1, name=s.name, encoding=s.encoding, data=s.data))(
-        msg.encode())
+        msg if isinstance(msg, bytes) else msg.encode())
 
 
 def ramp(ny: int, nx: int) -> np.ndarray:

@@ -40,6 +40,7 @@ class PushWorld:
         self.contacts = SimContacts(units, groups)
         self.wires = {k: np.array(v, float) for k, v in wires.items()}
         self._initial_nodes = {k: v.copy() for k, v in self.wires.items()}
+        self._truth_order: tuple[list[int], list[int]] | None = None     # truth()'s units, its wires
         self.episodes: dict = {}
         self.tip_radius = float(params.tip.radius)
         self.half_angle = float(params.tip.half_angle)
@@ -242,15 +243,18 @@ class PushWorld:
         return self.contacts.bodies
 
     def truth(self) -> tuple[Body, ...]:
-        """The objects in the sample frame, a wire as the rod on its end-to-end chord."""
-        out = []
-        for o, body in enumerate(self.table.bodies):
-            if self.table.kind[o] == Kind.WIRE:
-                nodes = self.wires[o]
-                same = np.array_equal(nodes, self._initial_nodes[o])
-                out.append(body if same else chord_body(body.id, nodes, body.diameter))
-            else:
-                out.append(self.contacts.unit(int(self.table.first_unit[o])))
+        """The objects in the sample frame, a wire as the rod on its end-to-end chord (the
+        objects' kinds and first footprints read once: a dry-run asks after every push)."""
+        if self._truth_order is None:
+            kind, first = self.table.kind, self.table.first_unit
+            self._truth_order = ([int(f) for f in first], [o for o in range(len(kind)) if kind[o] == Kind.WIRE])
+        firsts, wires = self._truth_order
+        unit = self.contacts.unit
+        out = [unit(f) for f in firsts]
+        for o in wires:
+            body, nodes = self.table.bodies[o], self.wires[o]
+            same = np.array_equal(nodes, self._initial_nodes[o])
+            out[o] = body if same else chord_body(body.id, nodes, body.diameter)
         return tuple(out)
 
 
