@@ -369,7 +369,10 @@ class CreepingOffset:
         out = self.constant + (t - self.t_ref)[:, None] * self.velocity
         if self.times.size:
             w = np.log10(1.0 + np.maximum(t[:, None] - self.times[None, :], 0.0) / self.tau)
-            out = out - self.amplitude * (w @ self.steps)
+            # each time's sum alone: a matrix product's rows depend on how many rows it is
+            # given, and the DAC renders a path in blocks that must give each sample as alone
+            out = out - self.amplitude * np.column_stack([(w * self.steps[:, 0]).sum(axis=1),
+                                                          (w * self.steps[:, 1]).sum(axis=1)])
         return out
 
 

@@ -18,7 +18,7 @@ from .belief import Belief
 from .context import RunContext
 from .course import Course
 from .estimators import estimator_from_state
-from .json_parts import PartCache, PartsDict
+from .json_parts import PartCache, Parts, PartsDict
 from .pivots import Pivots
 from .landmarks import Landmarks
 from .ledger import RunLedger
@@ -38,7 +38,7 @@ def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str
     return PartsDict({
         "format": FORMAT, "t": t, "saved_at": time.time(), "strategy": asm.strategy.value,
         "plan": plan, "base": base,
-        "remaining": [o.to_dict() for o in remaining], "done": done, "corrections": dict(corrections),
+        "remaining": _remaining(remaining), "done": done, "corrections": dict(corrections),
         "belief": ctx.belief.state_dict(), "estimator": ctx.drift.state_dict(),
         "references": ctx.refs.state_dict(), "course": asm.course.state_dict(),
         "landmarks": ctx.landmarks.state_dict(), "line_timing": ctx.timing.state_dict(),
@@ -57,6 +57,17 @@ def _plan_parts(plan, base) -> tuple:
     items = [(name, part) for name, part in (("plan", plan), ("base", base)) if part is not None]
     made = dict(zip((name for name, _ in items), _PLAN_PARTS.parts(items, lambda p: p.to_dict())))
     return made.get("plan"), made.get("base")
+
+
+#: The operations still to run, each a kept part while it stands (the same object): a
+#: plan's operations stand from one push to the next, and at 1000 objects hundreds remain.
+_OPERATIONS = PartCache()
+
+
+def _remaining(remaining: list[Operation]) -> Parts:
+    """``[o.to_dict() for o in remaining]``, each operation's dict the same kept part while
+    the operation (frozen) stands."""
+    return Parts(_OPERATIONS.parts(((id(o), o) for o in remaining), lambda o: o.to_dict()))
 
 
 def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]]:

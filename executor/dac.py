@@ -9,7 +9,8 @@ renders samples chunk by chunk through the frame stages of
 :func:`~nanoasm.instrument.check_samples` against the sample before it (the
 instrument's current sample for the first) before it is yielded, so no NaN, no
 out-of-range code and no over-slew step can leave. Memory is one chunk plus a few
-numbers per path vertex, whatever the path's length.
+numbers per path vertex, whatever the path's length (chunks are cut from blocks of at
+most :data:`BLOCK` samples, or one chunk where chunks are longer).
 
 Typical use by the executor::
 
@@ -36,6 +37,9 @@ from .dac_frames import (DriftLike, LinearDrift, PushLoad, as_drift, compensate,
 from .trajectory import Move, Path, Profile, as_moves, build_path, profile
 
 _DRIFT_GRID = 2049  # times at which a general drift callable's rates are estimated
+#: Most samples rendered at once, in whole chunks: a tracked push streams chunks of 100
+#: samples, and each stage costs a call per render however few samples it renders.
+BLOCK = 4096
 
 
 @dataclass(frozen=True, eq=False)
@@ -116,16 +120,36 @@ class DacPlan:
         return self._chunks(int(size))
 
     def _chunks(self, size: int) -> Iterator[Chunk]:
+        """Chunks cut from blocks of whole chunks up to :data:`BLOCK` samples, each block
+        rendered and checked at once (every stage is sample by sample, so a chunk is the
+        samples it would be alone); a block that fails is streamed chunk by chunk, so that
+        the chunks before the failing one are yielded and its error names it."""
         previous = self.current
-        for a in range(1, self.n_samples + 1, size):
-            k = np.arange(a, min(a + size, self.n_samples + 1), dtype=np.int64)
+        step = size * max(1, BLOCK // size)
+        for b in range(1, self.n_samples + 1, step):
+            k = np.arange(b, min(b + step, self.n_samples + 1), dtype=np.int64)
             try:
-                chunk = self.render(k)
+                block = self.render(k)
+                check_samples(block.codes, self.config, previous)
+            except InstrumentLimitError:
+                previous = yield from self._checked(k, size, previous)
+                continue
+            for a in range(0, k.size, size):
+                cut = slice(a, a + size)
+                yield Chunk(block.codes[cut], block.t[cut], block.nm[cut], block.kind[cut], b + a)
+            previous = block.codes[-1]
+
+    def _checked(self, k: np.ndarray, size: int, previous):
+        """Samples ``k`` rendered and checked a chunk at a time; returns the last sample."""
+        for a in range(0, k.size, size):
+            try:
+                chunk = self.render(k[a:a + size])
                 check_samples(chunk.codes, self.config, previous)
             except InstrumentLimitError as err:
-                raise InstrumentLimitError(f"chunk from sample {a}: {err}") from None
+                raise InstrumentLimitError(f"chunk from sample {int(k[a])}: {err}") from None
             previous = chunk.codes[-1]
             yield chunk
+        return previous
 
 
 def plan_dac(moves: Iterable, config: InstrumentConfig, current, *, t0: float = 0.0,

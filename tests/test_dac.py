@@ -408,3 +408,37 @@ def test_a_sweep_that_leaves_the_range_between_in_range_vertices_is_refused():
     x = stream(early)["nm"][:, 0] - velocity[0] * t_end
     assert x[-1] == pytest.approx(89990.0)
     assert x.max() > 90000.0 + 100.0
+
+
+@pytest.mark.parametrize("size", [1, 7, 100, 4095, 4096, 5000])
+def test_chunks_cut_from_blocks_are_the_chunks_rendered_alone(size):
+    """:meth:`DacPlan.chunks` renders blocks of whole chunks at once; every chunk is, to the
+    bit, the one rendered and checked alone (`render` of its samples), with a drift that
+    creeps after moves recorded and still to come (a matrix product's rows would differ
+    with the block's size), and a jump that fails a block streams the chunks before it."""
+    from nanoasm.drift.creep import CreepHistory, CreepingOffset, CreepModelParams
+
+    hist = CreepHistory(CreepModelParams(amplitude=0.01, tau=0.1, min_step=100.0))
+    rng = np.random.default_rng(size)
+    for t in np.sort(rng.uniform(0.0, 100.0, 40)):
+        hist.record(float(t), rng.normal(0.0, 800.0, 2))
+    creeping = CreepingOffset((3.0, -2.0), (0.3, -0.2), 101.0, hist, pending=[(101.4, (900.0, -300.0))])
+    moves = [("travel", [[12000.0, 9000.0]]), ("push", [[12000.0, 9000.0], [12900.0, 9400.0]])]
+    plan = plan_dac(moves, CFG, REST, t0=101.0, drift=creeping)
+    got = list(plan.chunks(size))
+    assert sum(len(c) for c in got) == plan.n_samples
+    for c in got:
+        alone = plan.render(np.arange(c.first, c.first + len(c)))
+        for name in ("codes", "t", "nm", "kind"):
+            np.testing.assert_array_equal(getattr(c, name), getattr(alone, name))
+
+    def jumpy(t):
+        t = np.asarray(t, float)
+        return creeping(t) + np.column_stack([(np.abs(t - 101.25) < 1e-7) * 5000.0, np.zeros_like(t)])
+
+    plan = plan_dac(moves, CFG, REST, t0=101.0, drift=jumpy)
+    sent = []
+    with pytest.raises(InstrumentLimitError, match="chunk from sample"):
+        for chunk in plan.chunks(size):
+            sent.append(chunk)
+    assert sum(len(c) for c in sent) == size * (249 // size)      # sample 250 jumps: its chunk fails
