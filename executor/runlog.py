@@ -86,13 +86,14 @@ def _plain(v: Any) -> Any:
 
 
 def _rounded(doc: Any) -> Any:
-    """``doc`` with every float rounded to ``_DIGITS`` decimals."""
+    """``doc`` with every float rounded to ``_DIGITS`` decimals (a list's floats without a
+    call each: a scan line's heights, a DAC chunk's samples)."""
     if isinstance(doc, float):
         return round(doc, _DIGITS)
     if isinstance(doc, dict):
         return {k: _rounded(v) for k, v in doc.items()}
     if isinstance(doc, (list, tuple)):
-        return [_rounded(v) for v in doc]
+        return [round(v, _DIGITS) if isinstance(v, float) else _rounded(v) for v in doc]
     return doc
 
 

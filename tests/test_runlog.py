@@ -305,3 +305,35 @@ def test_the_full_scan_attachment_is_deflated_only_where_that_pays():
         assert (kinds["height.npy"] == zipfile.ZIP_DEFLATED) is deflated
         assert len(data) < height.nbytes / 10 if deflated else len(data) > height.nbytes
         assert np.array_equal(full_scan_image(data).height, height)
+
+
+def test_a_documents_floats_are_rounded_as_one_at_a_time():
+    """``_rounded`` (a list's floats rounded without a call each) gives what rounding
+    every float one call at a time gives, numpy floats, ints, bools and strings among
+    them, at any depth."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from nanoasm.executor.runlog import _DIGITS, _rounded
+
+    def one_at_a_time(doc):
+        if isinstance(doc, float):
+            return round(doc, _DIGITS)
+        if isinstance(doc, dict):
+            return {k: one_at_a_time(v) for k, v in doc.items()}
+        if isinstance(doc, (list, tuple)):
+            return [one_at_a_time(v) for v in doc]
+        return doc
+
+    leaf = st.one_of(st.floats(allow_nan=False), st.floats(-1e6, 1e6).map(np.float64), st.integers(), st.booleans(),
+                     st.text(max_size=3), st.none())
+    docs = st.recursive(leaf, lambda inner: st.one_of(st.lists(inner, max_size=6), st.tuples(inner, inner),
+                                                      st.dictionaries(st.text(max_size=3), inner, max_size=4)))
+
+    @settings(max_examples=300, deadline=None)
+    @given(docs)
+    def check(doc):
+        got, want = _rounded(doc), one_at_a_time(doc)
+        assert json.dumps(got) == json.dumps(want) and type(got) is type(want)
+
+    check()
