@@ -26,7 +26,22 @@ Node = tuple[str, str]
 
 
 def _footprint(b: Body, grow: float = 0.0) -> shapely.Geometry:
-    return b.geometry().buffer(b.radius + grow, quad_segs=8)
+    """``b``'s footprint grown by ``grow`` nm: the same geometry (shapely's never change)
+    for as long as a body of its kind, centre and size is asked for again."""
+    key = (b.kind, *b.at, b.diameter, b.angle, b.length, grow)
+    got = _FOOTPRINTS.get(key)
+    if got is None:
+        if len(_FOOTPRINTS) >= FOOTPRINTS_KEPT:
+            _FOOTPRINTS.clear()
+        got = _FOOTPRINTS[key] = b.geometry().buffer(b.radius + grow, quad_segs=8)
+    return got
+
+
+#: Footprints by what makes them: a replan builds the dependency graph over every object
+#: again, and between two replans most have not moved (1000 objects: a third of a
+#: replan's time was buffering the same discs).
+_FOOTPRINTS: dict[tuple, shapely.Geometry] = {}
+FOOTPRINTS_KEPT = 50_000
 
 
 def _rod_or_particle_first(t1: str, t2: str, targets: Mapping[str, Body], objects: Mapping[str, Body],

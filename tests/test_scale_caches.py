@@ -313,3 +313,23 @@ def test_a_scene_of_bodies_is_the_encoding_of_its_foxglove_message(bodies, delet
     message = SceneUpdate(entities=entities,
                           deletions=[SceneEntityDeletion(timestamp=stamp, id=f"obj:{i}") for i in delete])
     assert bodies_scene(docs, "obj", COLOURS["belief"], stamp, delete=delete, lift=lift) == message.encode()
+
+
+@settings(max_examples=80, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from([0.0, 10.0, 10.5]), st.sampled_from([0.0, -3.0]),
+                          st.sampled_from([80.0, 90.0]), st.sampled_from([None, 0.0, 30.0]), st.sampled_from([300.0, 400.0]),
+                          st.sampled_from([0.0, 2.5])), min_size=1, max_size=30))
+def test_a_kept_footprint_is_the_footprint_buffered_anew(shapes):
+    """The dependency graph's footprints, kept by what makes them, are the footprints
+    buffered anew for bodies that differ in any one of centre, diameter, angle, length
+    and growth (a key without one of them hands a stale one out)."""
+    import shapely
+
+    from nanoasm.planner import sequence
+
+    sequence._FOOTPRINTS.clear()
+    for k, (x, y, d, angle, length, grow) in enumerate(shapes):
+        b = (Body(f"o{k}", "particle", (x, y), d) if angle is None
+             else Body(f"o{k}", "rod", (x, y), d, angle, length))
+        fresh = b.geometry().buffer(b.radius + grow, quad_segs=8)
+        assert shapely.to_wkb(sequence._footprint(b, grow)) == shapely.to_wkb(fresh)
