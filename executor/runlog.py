@@ -86,8 +86,7 @@ def _plain(v: Any) -> Any:
 
 
 def _rounded(doc: Any) -> Any:
-    """``doc`` with every float rounded to ``_DIGITS`` decimals (a list's floats without a
-    call each: a scan line's heights, a DAC chunk's samples)."""
+    """``doc`` with every float rounded to ``_DIGITS`` decimals (a list's without a call each)."""
     if isinstance(doc, float):
         return round(doc, _DIGITS)
     if isinstance(doc, dict):
@@ -216,8 +215,7 @@ class RunLog:
 
     def _channel(self, topic: str, schema: str, json_schema: dict | None) -> Any:
         """A channel of a Foxglove message (``foxglove.*``), or of JSON with ``json_schema``."""
-        fg = self._fg
-        from foxglove import messages as fm
+        fg, fm = self._fg, self._fg.messages
 
         if schema.startswith("foxglove."):     # the message's protobuf schema; _log encodes (or is given bytes)
             kind = getattr(fm, schema.split(".", 1)[1])
