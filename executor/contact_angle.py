@@ -196,7 +196,7 @@ class PushSignals:
             if x.size < 2:
                 return None
             along = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
-            span = (float(x.min()), float(x.max())) if x.size else None
+            span = (float(x.min()), float(x.max()))
         else:
             kept = self._kept
             if kept is None or kept.key != (key, level):
@@ -256,7 +256,7 @@ class _Contact:
         if self.n:
             last = self.n - 1
             steps = np.hypot(np.diff(x, prepend=self.arrays[2][last]), np.diff(y, prepend=self.arrays[3][last]))
-            along = np.cumsum(np.concatenate([[self.arrays[4][self.n - 1]], steps]))[1:]
+            along = np.cumsum(np.concatenate([[self.arrays[4][last]], steps]))[1:]
         else:
             along = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
         lo, hi = float(x.min()), float(x.max())

@@ -39,9 +39,10 @@ def _footprint(b: Body, grow: float = 0.0) -> shapely.Geometry:
 
 #: Footprints by what makes them: a replan builds the dependency graph over every object
 #: again, and between two replans most have not moved (1000 objects: a third of a
-#: replan's time was buffering the same discs).
+#: replan's time was buffering the same discs). At most ten times the largest scene's
+#: objects are kept (about 1 kB each), then all are forgotten at once.
 _FOOTPRINTS: dict[tuple, shapely.Geometry] = {}
-FOOTPRINTS_KEPT = 50_000
+FOOTPRINTS_KEPT = 10_000
 
 
 def _rod_or_particle_first(t1: str, t2: str, targets: Mapping[str, Body], objects: Mapping[str, Body],
