@@ -49,11 +49,20 @@ def label_grains(height: np.ndarray, cut: float, min_pixels: int = 1,
         if box is not None and box[0].stop - box[0].start < 2:
             keep[k] = False
     if min_height is not None:
-        tops = np.asarray(ndimage.maximum(height, labels, np.arange(1, n + 1)))
-        keep[1:] &= tops >= min_height
+        keep[1:] &= _tops(height, labels, n) >= min_height
     remap = np.zeros(n + 1, dtype=labels.dtype)
     remap[keep] = np.arange(1, np.count_nonzero(keep) + 1)
     return remap[labels], int(np.count_nonzero(keep))
+
+
+def _tops(height: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
+    """Each label's highest pixel, labels 1..n (every one labels a pixel): what
+    ``ndimage.maximum(height, labels, 1..n)`` gives, from the labelled pixels alone (it
+    sorted every pixel of the scan: 4 s of a 4000 x 4000 pixel scan's identification)."""
+    inside = labels > 0
+    tops = np.full(n, -np.inf, dtype=np.result_type(height.dtype, np.float64))
+    np.maximum.at(tops, labels[inside] - 1, height[inside])
+    return tops
 
 
 def split_grain(height: np.ndarray, mask: np.ndarray, prominence: float) -> tuple[np.ndarray, np.ndarray]:
