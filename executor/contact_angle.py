@@ -191,23 +191,19 @@ class PushSignals:
         every sample anew). None without enough samples or contact force."""
         if not self.push:
             return None
-        if key is None:
-            sn, sl, x, y = _in_contact(compensate, level, *(np.concatenate(c) for c in zip(*self.push)))
-            if x.size < 2:
-                return None
-            along = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(x), np.diff(y)))])
-            span = (float(x.min()), float(x.max()))
-        else:
+        if key is None:                 # every sample at once
+            kept = _Contact(None)
+            kept.add(*_in_contact(compensate, level, *(np.concatenate(c) for c in zip(*self.push))))
+        else:                           # the chunks since the last read
             kept = self._kept
             if kept is None or kept.key != (key, level):
                 kept = self._kept = _Contact((key, level))
             for chunk in self.push[kept.chunks:]:
                 kept.add(*_in_contact(compensate, level, *chunk))
             kept.chunks = len(self.push)
-            sn, sl, x, along = kept.view()
-            if x.size < 2:
-                return None
-            span = kept.span
+        sn, sl, x, along = kept.view()
+        if x.size < 2:
+            return None
         if along[-1] < self.lead + WINDOW:           # too short to have both apart
             return None
         share = REFERENCE_SHARE * self.lead                 # an onset beyond share + SETTLE does not matter
@@ -216,7 +212,7 @@ class PushSignals:
             return None
         reference = np.arange(int(np.searchsorted(along, end, side="right")))          # along never falls
         window = np.arange(int(np.searchsorted(along, along[-1] - WINDOW, side="left")), along.size)
-        slope = self._lifted_slope(compensate, key, span) if self.lifted else 0.0
+        slope = self._lifted_slope(compensate, key, kept.span) if self.lifted else 0.0
         take = np.concatenate([reference, window])          # the samples the two windows read, alone
         return contact_angle(sn[take], sl[take], np.arange(reference.size), np.arange(reference.size, take.size),
                              motion, psi, lever, x[take], slope)
