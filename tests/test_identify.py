@@ -7,6 +7,8 @@ import math
 import numpy as np
 import pytest
 import shapely
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from nanoasm.bodies import Body
 from nanoasm.errors import InputError
@@ -395,3 +397,67 @@ def test_the_grains_tops_are_ndimages_maxima(seed):
     tops = ndimage.maximum(h, labels, np.arange(1, n + 1))
     rows = [box[0].stop - box[0].start for box in ndimage.find_objects(labels)]
     assert m == sum(1 for t, r in zip(tops, rows) if t >= 6.0 and r >= 2) > 0
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(allow_nan=True, allow_infinity=True, width=64), min_size=0, max_size=300),
+       st.sampled_from([np.float64, np.float32]))
+def test_levellings_median_is_numpys(values, dtype):
+    """One selection of the two middle elements, the NaN check on the upper half: the value
+    of ``np.median``, NaN and infinities included, in float64 and float32."""
+    from nanoasm.world.identify.levelling import median
+
+    with np.errstate(all="ignore"):
+        a = np.array(values, dtype=np.float64).astype(dtype)
+        want = np.median(a) if a.size else math.nan
+    got = median(a)
+    assert (math.isnan(got) and math.isnan(want)) or got == want
+
+
+@pytest.mark.parametrize("n", [20_000, 20_001, 1_000_000, 1_000_001])
+def test_levellings_median_is_numpys_on_large_arrays(n):
+    """Arrays large enough that the selection does not sort them whole, with ties."""
+    from nanoasm.world.identify.levelling import median
+
+    rng = np.random.default_rng(n)
+    a = np.round(rng.normal(0.0, 1.0, n), 2)
+    assert median(a) == np.median(a)
+    a[rng.integers(n)] = np.nan
+    assert math.isnan(median(a))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_levellings_surface_rows_and_mask_are_the_plain_computations(seed):
+    """The surface evaluated band by band, the rows' medians one by one and the mask grown
+    by a maximum filter equal, to the bit, the whole-image outer products, ``np.nanmedian``
+    and ``binary_dilation`` they replace (an image whose rows are no multiple of a band)."""
+    from scipy import ndimage
+
+    from nanoasm.world.identify.levelling import _powers, align_rows, fit_surface
+
+    rng = np.random.default_rng(seed)
+    ny, nx = 150 + 37 * seed, 90 + 11 * seed
+    z = ndimage.gaussian_filter(rng.normal(0.0, 1.0, (ny, nx)), 1.5) * 5.0 + rng.normal(0.0, 0.1, (ny, nx))
+    use = rng.random((ny, nx)) > 0.3
+    use[3] = False                               # a row with nothing usable: interpolated
+    for order in (1, 2):
+        iy, ix = np.nonzero(use)
+        pick = np.linspace(0, iy.size - 1, 500).astype(int)
+        iy, ix = iy[pick], ix[pick]
+        xs, ys = np.linspace(-1.0, 1.0, nx), np.linspace(-1.0, 1.0, ny)
+        a = np.stack([xs[ix] ** i * ys[iy] ** j for i, j in _powers(order)], axis=-1)
+        coef = np.linalg.lstsq(a, z[iy, ix], rcond=None)[0]
+        want = np.zeros_like(z)
+        for (i, j), k in zip(_powers(order), coef):
+            want += k * np.outer(ys ** j, xs ** i)
+        np.testing.assert_array_equal(fit_surface(z, use, order, max_points=500), want)
+    enough = np.count_nonzero(use, axis=1) >= 5
+    offs = np.full(ny, np.nan)
+    offs[enough] = np.nanmedian(np.where(use[enough], z[enough], np.nan), axis=1)
+    filled = np.interp(np.arange(ny), np.nonzero(enough)[0], offs[enough])
+    np.testing.assert_array_equal(align_rows(z, use, 0), np.broadcast_to(filled[:, None], z.shape))
+    objects = rng.random((ny, nx)) > 0.97
+    for grow in (1, 2, 3):
+        np.testing.assert_array_equal(ndimage.maximum_filter(objects, size=2 * grow + 1),
+                                      ndimage.binary_dilation(objects, ndimage.generate_binary_structure(2, 2),
+                                                              iterations=grow))

@@ -11,6 +11,7 @@ first round starts from the lowest extended level instead (:func:`initial_substr
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +26,8 @@ CUT_FLOOR = 0.5
 DENSE_LEVEL = 0.05
 #: ... and the lowest such level is the substrate only if this fraction of rows shows it.
 ROWS_WITH_SUBSTRATE = 0.8
+#: Rows of a fitted surface evaluated at once (a band of a 4000-pixel image is 2 MB).
+_BAND = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -46,19 +49,22 @@ def _powers(order: int) -> list[tuple[int, int]]:
 def fit_surface(z: np.ndarray, use: np.ndarray, order: int, max_points: int = 40000) -> np.ndarray:
     """Least-squares 2-D polynomial of total degree ``order`` through ``z[use]``, evaluated everywhere."""
     ny, nx = z.shape
-    iy, ix = np.nonzero(use)
-    if iy.size < (order + 1) * (order + 2):
+    flat = np.flatnonzero(use)                 # the row-major order of np.nonzero, one index array
+    if flat.size < (order + 1) * (order + 2):
         return np.zeros_like(z)
-    if iy.size > max_points:
-        pick = np.linspace(0, iy.size - 1, max_points).astype(int)
-        iy, ix = iy[pick], ix[pick]
+    if flat.size > max_points:
+        flat = flat[np.linspace(0, flat.size - 1, max_points).astype(int)]
+    iy, ix = np.divmod(flat, nx)
     xs, ys = np.linspace(-1.0, 1.0, nx), np.linspace(-1.0, 1.0, ny)
     powers = _powers(order)
     a = np.stack([xs[ix] ** i * ys[iy] ** j for i, j in powers], axis=-1)
     coef, *_ = np.linalg.lstsq(a, z[iy, ix], rcond=None)
     out = np.zeros_like(z)
-    for (i, j), k in zip(powers, coef):
-        out += k * np.outer(ys ** j, xs ** i)
+    terms = [(k, ys ** j, xs ** i) for (i, j), k in zip(powers, coef)]
+    for r in range(0, ny, _BAND):             # band by band: the same sums, in cache
+        band = out[r:r + _BAND]
+        for k, yj, xi in terms:
+            band += k * np.outer(yj[r:r + _BAND], xi)
     return out
 
 
@@ -74,9 +80,8 @@ def align_rows(z: np.ndarray, use: np.ndarray, order: int = 0, min_count: int = 
     xs = np.linspace(-1.0, 1.0, nx)
     counts = np.count_nonzero(use, axis=1)
     if order == 0:
-        enough = counts >= min_count
-        if enough.any():
-            offs[enough] = np.nanmedian(np.where(use[enough], z[enough], np.nan), axis=1)
+        for i in np.flatnonzero(counts >= min_count):   # nanmedian's value, without its copies
+            offs[i] = median(z[i, use[i]])
     for i in range(ny) if order else ():
         u = use[i]
         if counts[i] < max(min_count, order + 2):
@@ -94,11 +99,32 @@ def align_rows(z: np.ndarray, use: np.ndarray, order: int = 0, min_count: int = 
     return corr + filled[:, None]
 
 
+def median(values: np.ndarray) -> float:
+    """``np.median``'s value (flattened), without its third selection (numpy adds the last
+    element to check for NaN; here the upper half's maximum does): a third less time on
+    an image's 16 M heights, and a row's median without numpy's dispatch."""
+    values = np.ravel(values)
+    n = values.size
+    if n < 2:
+        return float(values[0]) if n else math.nan
+    h = n // 2
+    part = np.partition(values, [h - 1, h])
+    if np.isnan(part[h:].max()):               # NaNs sort last
+        return math.nan
+    return float((part[h - 1] + part[h]) / 2) if n % 2 == 0 else float(part[h])
+
+
+def centre_sigma(values: np.ndarray) -> tuple[float, float]:
+    """The median of ``values`` and their normal-equivalent sigma from the median absolute deviation."""
+    if values.size == 0:
+        return math.nan, 0.0
+    centre = median(values)
+    return centre, float(MAD_TO_SIGMA * median(np.abs(values - centre)))
+
+
 def robust_sigma(values: np.ndarray) -> float:
     """Normal-equivalent sigma from the median absolute deviation."""
-    if values.size == 0:
-        return 0.0
-    return float(MAD_TO_SIGMA * np.median(np.abs(values - np.median(values))))
+    return centre_sigma(values)[1]
 
 
 def _tilt(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -110,8 +136,8 @@ def _tilt(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
     ny, nx = z.shape
     dx = np.diff(z, axis=1)[valid[:, 1:] & valid[:, :-1]]
     dy = np.diff(z, axis=0)[valid[1:] & valid[:-1]]
-    sx = float(np.median(dx)) if dx.size else 0.0
-    sy = float(np.median(dy)) if dy.size else 0.0
+    sx = median(dx) if dx.size else 0.0
+    sy = median(dy) if dy.size else 0.0
     return sx * np.arange(nx)[None, :] + sy * np.arange(ny)[:, None]
 
 
@@ -194,21 +220,19 @@ def level(height: np.ndarray, *, plane_order: int = 1, line_order: int = 0,
     valid = np.isfinite(z)
     if not valid.any():
         raise ValueError("height has no finite value")
-    z = np.where(valid, z, np.median(z[valid]))
+    z = np.where(valid, z, median(z[valid]))
     use = initial_substrate(z, valid)
     sigma = 0.0
-    structure = ndimage.generate_binary_structure(2, 2)
     for _ in range(iterations):
         z = z - fit_surface(z, use, plane_order)
         z = z - align_rows(z, use, line_order)
         base = z[use]
-        sigma = robust_sigma(base)
-        centre = float(np.median(base))
+        centre, sigma = centre_sigma(base)
         z = z - centre
         limit = max(k_mask * sigma, floor / 2)
         objects = np.abs(z) > limit
-        if grow:
-            objects = ndimage.binary_dilation(objects, structure, iterations=grow)
+        if grow:                              # = binary_dilation(objects, 3 x 3, iterations=grow)
+            objects = ndimage.maximum_filter(objects, size=2 * grow + 1)
         new_use = valid & ~objects
         if np.count_nonzero(new_use) < max(10, 0.05 * z.size):
             break                             # too little substrate left: keep the last mask
