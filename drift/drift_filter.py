@@ -331,7 +331,7 @@ class DriftFilter:
         # line and each of its lines): answers are kept per time while the state stands
         state = (self.commits, c.version)
         if self._offset_cache is None or self._offset_cache[0] != state:
-            self._offset_cache = (state, {})
+            self._offset_cache = (state, {}, {})
         known = self._offset_cache[1]
         t = float(t)
         if t not in known:
@@ -342,6 +342,33 @@ class DriftFilter:
             known[t] = (O @ x + c.offset(tau), gram(np.hstack([O @ L, c.cov_sqrt(tau)])))
         off, cov = known[t]
         return OffsetEstimate(off.copy(), cov.copy())
+
+    def offset_mean(self, t: float) -> np.ndarray:
+        """``offset(t).offset`` to the bit, without its covariance (the state alone is
+        predicted: no factor's QR, no Gram matrix); answers kept like :meth:`offset`'s."""
+        c = self.creep
+        state = (self.commits, c.version)
+        if self._offset_cache is None or self._offset_cache[0] != state:
+            self._offset_cache = (state, {}, {})
+        _, known, means = self._offset_cache
+        t = float(t)
+        if t in known:
+            return known[t][0].copy()
+        if t not in means:
+            if len(means) >= 16:
+                means.clear()
+            memo = self._propagated.get((self.commits, t))
+            if memo is not None:
+                tau, x = memo[0], memo[2]
+            else:
+                tau, dt = self._relative(t)
+                F = transition(dt)
+                if self.statics:          # as _predict's: the static parameters stay
+                    F = np.eye(STATE_DIM + self.statics)
+                    F[:STATE_DIM, :STATE_DIM] = transition(dt)
+                x = F @ self._x
+            means[t] = self._rows(np.eye(2), None, tau) @ x + c.offset(tau)
+        return means[t].copy()
 
     def r_max(self, t: float, k: float = 3.0) -> float:
         """Largest expected drift error radius (nm) at ``t``: ``k √λ_max`` of the offset

@@ -130,7 +130,7 @@ class Kalman:
             return (self.origin + self.scan.thermal_jacobian(tau) @ theta
                     + (1.0 + theta[EPS]) * self.filter.creep.offset(tau)
                     + theta[LAM] * self.filter.creep.tau_sensitivity(tau) + self.scan.step(tau))
-        return self.origin + np.asarray(self.filter.offset(t).offset, float)
+        return self.origin + self.filter.offset_mean(t)
 
     def revision(self) -> object:
         """Equal to an earlier token while no measurement or reset revised the estimate."""

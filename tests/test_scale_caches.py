@@ -64,6 +64,39 @@ def test_the_filters_weighing_of_many_equals_its_projections_one_by_one(seed, k,
         assert gains[j] == pytest.approx(f.information(t, np.eye(2), R, S[j]), rel=1e-9, abs=1e-12)
 
 
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 10_000), st.booleans(), st.lists(st.tuples(st.sampled_from("Mcxo"), st.floats(0.0, 40.0)),
+                                                    min_size=1, max_size=12))
+def test_the_offset_without_its_covariance_is_the_offsets_to_the_bit(seed, statics, steps):
+    """``offset_mean`` against ``offset(t).offset`` (and a filter that never kept an
+    answer), asked in either order, at times the filter has and has not predicted to,
+    across measurements and moves that change the state and the creep."""
+    rng = np.random.default_rng(seed)
+    f = _filter(seed) if statics else DriftFilter(DriftFilterParams(), epoch=0.0, start=0.0)
+    twin = _filter(seed) if statics else DriftFilter(DriftFilterParams(), epoch=0.0, start=0.0)
+    t = 1.0
+    for what, dt in steps:
+        t += dt
+        if what == "M":                                   # a measurement (gated or not)
+            z = rng.normal(size=2) * 5.0
+            S = rng.normal(size=(2, f.statics)) if f.statics else None
+            for g in (f, twin):
+                g.measure_projected(t, z, np.eye(2), np.eye(2) * 4.0, static=S)
+        elif what == "c":                                 # a move that creeps
+            step = rng.normal(size=2) * 800.0
+            f.record_move(t, step)
+            twin.record_move(t, step)
+        elif what == "x":                                 # the full offset first, then the mean
+            full = f.offset(t + 3.0).offset
+            assert np.array_equal(f.offset_mean(t + 3.0), full)
+        else:                                             # "o": the mean first, at a time asked again
+            mean = f.offset_mean(t + 2.0)
+            assert np.array_equal(mean, f.offset(t + 2.0).offset)
+            mean[:] = 1e9                                 # a copy
+            assert np.array_equal(f.offset_mean(t + 2.0), twin.offset(t + 2.0).offset)
+        assert np.array_equal(f.offset_mean(t + 0.5), twin.offset(t + 0.5).offset)
+
+
 def test_the_filter_refuses_statics_of_the_wrong_shape():
     f = _filter(0)
     with pytest.raises(ValueError, match="statics"):
