@@ -74,7 +74,7 @@ def test_the_offset_without_its_covariance_is_the_offsets_to_the_bit(seed, stati
     rng = np.random.default_rng(seed)
     f = _filter(seed) if statics else DriftFilter(DriftFilterParams(), epoch=0.0, start=0.0)
     twin = _filter(seed) if statics else DriftFilter(DriftFilterParams(), epoch=0.0, start=0.0)
-    t = 1.0
+    t = 20.0                                              # after _filter's moves (5 to 14 s)
     for what, dt in steps:
         t += dt
         if what == "M":                                   # a measurement (gated or not)
@@ -366,3 +366,32 @@ def test_a_kept_footprint_is_the_footprint_buffered_anew(shapes):
              else Body(f"o{k}", "rod", (x, y), d, angle, length))
         fresh = b.geometry().buffer(b.radius + grow, quad_segs=8)
         assert shapely.to_wkb(sequence._footprint(b, grow)) == shapely.to_wkb(fresh)
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.integers(0, 10_000), st.integers(1, 700))
+def test_the_kept_moves_handed_out_never_change_as_moves_come_and_freeze(seed, n):
+    """The kept moves live in buffers that grow: a move is written after the rows handed
+    out, and freezing (slow moves, or the oldest past ``max_moves``) makes new buffers, so
+    arrays read earlier keep their values; the arrays are moves recorded, in order."""
+    from nanoasm.drift.creep import CreepHistory, CreepModelParams
+
+    rng = np.random.default_rng(seed)
+    h = CreepHistory(CreepModelParams(amplitude=0.01, tau=30.0, max_moves=64))
+    seen, recorded = [], []
+    t = 0.0
+    for _ in range(n):
+        t += float(rng.exponential(3.0))
+        step = rng.normal(size=2) * float(rng.choice([30.0, 800.0]))
+        if h.record(t, step):
+            recorded.append((t, *step))
+        times, steps = h.times, h.steps
+        assert not times.flags.writeable and not steps.flags.writeable
+        seen.append((times, times.copy(), steps, steps.copy()))
+        assert len(h) == times.size <= 64
+        rows = np.column_stack([times, steps])
+        kept = np.array(recorded) if recorded else np.empty((0, 3))
+        assert all(any(np.array_equal(r, k) for k in kept) for r in rows)     # recorded moves, ...
+        assert np.all(np.diff(times) >= 0)                                     # ... in order
+    for view, copy, sview, scopy in seen:
+        assert np.array_equal(view, copy) and np.array_equal(sview, scopy)
