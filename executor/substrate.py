@@ -10,6 +10,7 @@ import math
 import numpy as np
 
 from nanoasm.param import number
+from nanoasm.world.identify.levelling import centre_sigma, median
 
 #: Largest height magnitude accepted in a profile (nm); larger is not a height.
 MAX_HEIGHT = 1e9
@@ -37,9 +38,8 @@ def _dilate(mask: np.ndarray, k: int) -> np.ndarray:
 
 
 def _robust_std(r: np.ndarray) -> float:
-    if r.size < 2:
-        return 0.0
-    return float(1.4826 * np.median(np.abs(r - np.median(r))))
+    """1.4826 x the median absolute deviation (``np.median``'s values, a third fewer selections)."""
+    return centre_sigma(r)[1] if r.size >= 2 else 0.0
 
 
 def fit_baseline(profile, spacing: float, height: float, *, band: float = 0.15,
@@ -90,7 +90,7 @@ def fit_baseline(profile, spacing: float, height: float, *, band: float = 0.15,
             slope, icpt = np.polyfit(xs, z[sub], 1)
             new = icpt + slope * x
         else:                               # too short a stretch to trust a tilt
-            new = np.full(n, np.median(z[sub]))
+            new = np.full(n, median(z[sub]))
         done = np.array_equal(sub, substrate)
         base, substrate = new, sub
         if done:
