@@ -461,3 +461,77 @@ def test_levellings_surface_rows_and_mask_are_the_plain_computations(seed):
         np.testing.assert_array_equal(ndimage.maximum_filter(objects, size=2 * grow + 1),
                                       ndimage.binary_dilation(objects, ndimage.generate_binary_structure(2, 2),
                                                               iterations=grow))
+
+
+def _plain_level(height, plane_order=1, line_order=0, iterations=6, k_mask=3.0, grow=2, floor=None):
+    """``level`` as whole-image steps, each a new array: the surface, the rows' correction
+    and the centre subtracted, the substrate's medians on a copy."""
+    from scipy import ndimage
+
+    from nanoasm.world.identify.levelling import CUT_FLOOR, align_rows, fit_surface, initial_substrate
+
+    floor = CUT_FLOOR if floor is None else floor
+    z = np.asarray(height, dtype=float)
+    valid = np.isfinite(z)
+    z = np.where(valid, z, np.median(z[valid]))
+    use = initial_substrate(z, valid)
+    sigma = 0.0
+    for _ in range(iterations):
+        z = z - fit_surface(z, use, plane_order)
+        z = z - align_rows(z, use, line_order)
+        base = z[use]
+        centre = np.median(base)
+        sigma = float(1.4826 * np.median(np.abs(base - centre)))
+        z = z - centre
+        objects = ndimage.binary_dilation(np.abs(z) > max(k_mask * sigma, floor / 2),
+                                          ndimage.generate_binary_structure(2, 2), iterations=grow) if grow \
+            else np.abs(z) > max(k_mask * sigma, floor / 2)
+        new_use = valid & ~objects
+        if np.count_nonzero(new_use) < max(10, 0.05 * z.size):
+            break
+        if np.count_nonzero(new_use != use) <= 1e-3 * z.size:
+            use = new_use
+            break
+        use = new_use
+    return np.where(valid, z, 0.0), use, sigma
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_level_in_place_is_the_plain_computation(seed):
+    """``level`` changes its own copy in place (the surface subtracted a band at a time, one
+    offset a row, the substrate's medians selected in the gathered copy): the levelled
+    image, substrate and sigma of the whole-image steps, to the bit, for every line order,
+    with holes, in float32, and with no mask growth."""
+    from nanoasm.world.identify.levelling import MAD_TO_SIGMA, level
+
+    assert MAD_TO_SIGMA == 1.4826
+    rng = np.random.default_rng(seed)
+    ny, nx = 150 + 41 * seed, 120 + 23 * seed          # more rows than a band, not a multiple of one
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    z = 0.01 * xx + 0.02 * yy + rng.normal(0, 0.3, (ny, nx)) + rng.normal(0, 2, ny)[:, None]
+    for _ in range(25):
+        cy, cx = rng.integers(0, ny), rng.integers(0, nx)
+        z += 8 * np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / 50.0)
+    if seed % 2:
+        z[rng.random((ny, nx)) < 0.01] = np.nan
+    if seed == 4:
+        z = z.astype(np.float32)
+    before = z.copy()
+    for kw in ({}, {"line_order": 1}, {"plane_order": 2, "line_order": 2}, {"plane_order": 0}, {"grow": 0}):
+        got = level(z, **kw)
+        height, use, sigma = _plain_level(z, **kw)
+        np.testing.assert_array_equal(got.height, height)
+        np.testing.assert_array_equal(got.substrate, use)
+        assert got.sigma == sigma
+    np.testing.assert_array_equal(z, before)             # the caller's heights untouched
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.lists(st.floats(-1e6, 1e6), min_size=0, max_size=200), st.sampled_from([np.float64, np.float32]))
+def test_centre_and_sigma_in_the_callers_array_are_those_on_a_copy(values, dtype):
+    from nanoasm.world.identify.levelling import centre_sigma
+
+    a = np.array(values, dtype=np.float64).astype(dtype)
+    want = centre_sigma(a.copy())
+    got = centre_sigma(a, overwrite=True)
+    assert (got[0] == want[0] or (math.isnan(got[0]) and math.isnan(want[0]))) and got[1] == want[1]

@@ -46,12 +46,13 @@ def _powers(order: int) -> list[tuple[int, int]]:
     return [(i, j) for i in range(order + 1) for j in range(order + 1 - i)]
 
 
-def fit_surface(z: np.ndarray, use: np.ndarray, order: int, max_points: int = 40000) -> np.ndarray:
-    """Least-squares 2-D polynomial of total degree ``order`` through ``z[use]``, evaluated everywhere."""
+def _surface_terms(z: np.ndarray, use: np.ndarray, order: int, max_points: int) -> list | None:
+    """The least-squares polynomial's terms (coefficient, rows' and columns' powers), or
+    None where ``use`` holds too few pixels to fit it."""
     ny, nx = z.shape
     flat = np.flatnonzero(use)                 # the row-major order of np.nonzero, one index array
     if flat.size < (order + 1) * (order + 2):
-        return np.zeros_like(z)
+        return None
     if flat.size > max_points:
         flat = flat[np.linspace(0, flat.size - 1, max_points).astype(int)]
     iy, ix = np.divmod(flat, nx)
@@ -59,13 +60,35 @@ def fit_surface(z: np.ndarray, use: np.ndarray, order: int, max_points: int = 40
     powers = _powers(order)
     a = np.stack([xs[ix] ** i * ys[iy] ** j for i, j in powers], axis=-1)
     coef, *_ = np.linalg.lstsq(a, z[iy, ix], rcond=None)
+    return [(k, ys ** j, xs ** i) for (i, j), k in zip(powers, coef)]
+
+
+def _band(band: np.ndarray, r: int, terms: list) -> np.ndarray:
+    """The surface's rows ``r`` on into ``band`` (zeroed first)."""
+    band[...] = 0.0
+    for k, yj, xi in terms:
+        band += k * np.outer(yj[r:r + band.shape[0]], xi)
+    return band
+
+
+def fit_surface(z: np.ndarray, use: np.ndarray, order: int, max_points: int = 40000) -> np.ndarray:
+    """Least-squares 2-D polynomial of total degree ``order`` through ``z[use]``, evaluated everywhere."""
     out = np.zeros_like(z)
-    terms = [(k, ys ** j, xs ** i) for (i, j), k in zip(powers, coef)]
-    for r in range(0, ny, _BAND):             # band by band: the same sums, in cache
-        band = out[r:r + _BAND]
-        for k, yj, xi in terms:
-            band += k * np.outer(yj[r:r + _BAND], xi)
+    terms = _surface_terms(z, use, order, max_points)
+    for r in range(0, z.shape[0], _BAND) if terms else ():     # band by band: the same sums, in cache
+        _band(out[r:r + _BAND], r, terms)
     return out
+
+
+def _subtract_surface(z: np.ndarray, use: np.ndarray, order: int, max_points: int = 40000) -> None:
+    """``z -= fit_surface(z, use, order)`` to the bit, a band at a time (no image-sized surface)."""
+    terms = _surface_terms(z, use, order, max_points)
+    if not terms:
+        return
+    buf = np.empty((_BAND, z.shape[1]), z.dtype)
+    for r in range(0, z.shape[0], _BAND):
+        rows = z[r:r + _BAND]
+        rows -= _band(buf[:rows.shape[0]], r, terms)
 
 
 def align_rows(z: np.ndarray, use: np.ndarray, order: int = 0, min_count: int = 5) -> np.ndarray:
@@ -75,14 +98,14 @@ def align_rows(z: np.ndarray, use: np.ndarray, order: int = 0, min_count: int = 
     their neighbours (their polynomial terms beyond the offset are dropped).
     """
     ny, nx = z.shape
+    if order == 0:
+        filled = _row_offsets(z, use, min_count)
+        return np.zeros_like(z) if filled is None else np.broadcast_to(filled[:, None], z.shape).copy()
     corr = np.zeros_like(z)
     offs = np.full(ny, np.nan)
     xs = np.linspace(-1.0, 1.0, nx)
     counts = np.count_nonzero(use, axis=1)
-    if order == 0:
-        for i in np.flatnonzero(counts >= min_count):   # nanmedian's value, without its copies
-            offs[i] = median(z[i, use[i]])
-    for i in range(ny) if order else ():
+    for i in range(ny):
         u = use[i]
         if counts[i] < max(min_count, order + 2):
             continue
@@ -94,32 +117,54 @@ def align_rows(z: np.ndarray, use: np.ndarray, order: int = 0, min_count: int = 
     if not good.any():
         return corr
     filled = np.interp(np.arange(ny), np.nonzero(good)[0], offs[good])
-    if order == 0:
-        return np.broadcast_to(filled[:, None], z.shape).copy()
     return corr + filled[:, None]
 
 
-def median(values: np.ndarray) -> float:
+def _row_offsets(z: np.ndarray, use: np.ndarray, min_count: int = 5) -> np.ndarray | None:
+    """:func:`align_rows`' order-0 correction as one offset a row (None: no row has
+    ``min_count`` usable pixels): each row's median over ``use``, interpolated between."""
+    offs = np.full(z.shape[0], np.nan)
+    for i in np.flatnonzero(np.count_nonzero(use, axis=1) >= min_count):   # nanmedian's value, no copies
+        offs[i] = median(z[i, use[i]])
+    good = np.isfinite(offs)
+    if not good.any():
+        return None
+    return np.interp(np.arange(z.shape[0]), np.nonzero(good)[0], offs[good])
+
+
+def median(values: np.ndarray, *, overwrite: bool = False) -> float:
     """``np.median``'s value (flattened), without its third selection (numpy adds the last
     element to check for NaN; here the upper half's maximum does): a third less time on
-    an image's 16 M heights, and a row's median without numpy's dispatch."""
+    an image's 16 M heights, and a row's median without numpy's dispatch.
+    ``overwrite``: reorder ``values`` (a contiguous array the caller gives up) in place
+    instead of a copy of them."""
     values = np.ravel(values)
     n = values.size
     if n < 2:
         return float(values[0]) if n else math.nan
     h = n // 2
-    part = np.partition(values, [h - 1, h])
+    if overwrite:
+        values.partition([h - 1, h])
+        part = values
+    else:
+        part = np.partition(values, [h - 1, h])
     if np.isnan(part[h:].max()):               # NaNs sort last
         return math.nan
     return float((part[h - 1] + part[h]) / 2) if n % 2 == 0 else float(part[h])
 
 
-def centre_sigma(values: np.ndarray) -> tuple[float, float]:
-    """The median of ``values`` and their normal-equivalent sigma from the median absolute deviation."""
+def centre_sigma(values: np.ndarray, *, overwrite: bool = False) -> tuple[float, float]:
+    """The median of ``values`` and their normal-equivalent sigma from the median absolute
+    deviation (``overwrite``: ``values``, contiguous, are the caller's to overwrite)."""
     if values.size == 0:
         return math.nan, 0.0
-    centre = median(values)
-    return centre, float(MAD_TO_SIGMA * median(np.abs(values - centre)))
+    centre = median(values, overwrite=overwrite)
+    if overwrite:
+        dev = np.ravel(values)
+        dev -= centre
+    else:
+        dev = values - centre
+    return centre, float(MAD_TO_SIGMA * median(np.abs(dev, out=dev), overwrite=True))
 
 
 def robust_sigma(values: np.ndarray) -> float:
@@ -223,12 +268,16 @@ def level(height: np.ndarray, *, plane_order: int = 1, line_order: int = 0,
     z = np.where(valid, z, median(z[valid]))
     use = initial_substrate(z, valid)
     sigma = 0.0
-    for _ in range(iterations):
-        z = z - fit_surface(z, use, plane_order)
-        z = z - align_rows(z, use, line_order)
-        base = z[use]
-        centre, sigma = centre_sigma(base)
-        z = z - centre
+    for _ in range(iterations):               # z is this function's own: changed in place
+        _subtract_surface(z, use, plane_order)
+        if line_order == 0:
+            rows = _row_offsets(z, use)
+            if rows is not None:
+                z -= rows[:, None]
+        else:
+            z -= align_rows(z, use, line_order)
+        centre, sigma = centre_sigma(z[use], overwrite=True)
+        z -= centre
         limit = max(k_mask * sigma, floor / 2)
         objects = np.abs(z) > limit
         if grow:                              # = binary_dilation(objects, 3 x 3, iterations=grow)
