@@ -107,6 +107,19 @@ def body_from_table(t: Table, default_id: str, kinds: Sequence[str], extra: Sequ
     return Body(body_id, kind, at, diameter, angle, length), {k for k in extra if k in t}
 
 
+def geometries(bodies: Sequence[Body]) -> np.ndarray:
+    """The cores of ``bodies`` as an object array: each the geometry :meth:`Body.geometry`
+    makes, the particles' points made in one call (a thousand one by one took 6 ms)."""
+    out = np.empty(len(bodies), dtype=object)
+    discs = [i for i, b in enumerate(bodies) if not b.elongated]
+    if discs:
+        out[discs] = shapely.points(np.array([bodies[i].at for i in discs], dtype=float).reshape(-1, 2))
+    for i, b in enumerate(bodies):
+        if b.elongated:
+            out[i] = b.geometry()
+    return out
+
+
 def check_unique_ids(tables: Sequence[Table], bodies: Sequence[Body]) -> None:
     seen: dict[str, int] = {}
     for i, (t, b) in enumerate(zip(tables, bodies)):

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 
 import shapely
 
-from nanoasm.bodies import Body
+from nanoasm.bodies import Body, geometries
 from nanoasm.cad.layout import Layout
 from nanoasm.world.environment import Environment, EnvObject
 
@@ -75,7 +75,8 @@ class _Session:
         movable = {o.id: o for o in env.objects if assignable(o, options) and o.id not in on_region}
         self.fixed_ids = set(self.objects) - set(movable)
         fixed: list[tuple[shapely.Geometry, float]] = [(g, 0.0) for g in regions]
-        fixed += [(self.objects[i].geometry(), self.objects[i].radius) for i in sorted(self.fixed_ids)]
+        held = [self.objects[i] for i in sorted(self.fixed_ids)]
+        fixed += [(g, o.radius) for g, o in zip(geometries(held), held)]
         names = rod_why.fixed_names(layout, env.obstacles, sorted(self.fixed_ids))      # in the order of fixed
         area = (min(layout.area[0], env.area[0]), min(layout.area[1], env.area[1]))
         self.space = FreeSpace(area, fixed, movable, options.clearance)

@@ -14,7 +14,7 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 import shapely
 
-from nanoasm.bodies import Body
+from nanoasm.bodies import Body, geometries
 
 
 def _all_inside(geoms: np.ndarray, radius: float, area: tuple[float, float]) -> bool:
@@ -71,7 +71,7 @@ class FreeSpace:
         if self._dirty:
             self._ids = list(self.bodies)
             self._slot = {i: k for k, i in enumerate(self._ids)}
-            self._cores = np.array([self.bodies[i].geometry() for i in self._ids], dtype=object)
+            self._cores = geometries([self.bodies[i] for i in self._ids])
             self._radii = np.array([self.bodies[i].radius for i in self._ids], dtype=float)
         elif not self._moved:
             return

@@ -18,6 +18,7 @@ import math
 from collections.abc import Mapping, Sequence
 
 import networkx as nx
+import numpy as np
 import shapely
 
 from nanoasm.bodies import Body
@@ -25,16 +26,47 @@ from nanoasm.bodies import Body
 Node = tuple[str, str]
 
 
+def _key(b: Body, grow: float) -> tuple:
+    return (b.kind, *b.at, b.diameter, b.angle, b.length, grow)
+
+
+def _discs(at: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Discs of radii ``r`` about the points ``at`` ``(n, 2)``: the polygons
+    ``Point(at).buffer(r, quad_segs=8)`` makes, to the bit (GEOS puts the vertex at angle
+    θ at ``x + r cos θ``: the unit circle's own vertices, scaled and moved, are those), in
+    one call instead of one buffer each (1000 discs: 23 -> 1.2 ms)."""
+    return shapely.polygons(_UNIT[None] * r[:, None, None] + at[:, None, :])
+
+
+#: The unit circle as ``buffer`` draws it (33 vertices, the first repeated).
+_UNIT = shapely.get_coordinates(shapely.Point(0.0, 0.0).buffer(1.0, quad_segs=8))
+
+
 def _footprint(b: Body, grow: float = 0.0) -> shapely.Geometry:
     """``b``'s footprint grown by ``grow`` nm: the same geometry (shapely's never change)
     for as long as a body of its kind, centre and size is asked for again."""
-    key = (b.kind, *b.at, b.diameter, b.angle, b.length, grow)
-    got = _FOOTPRINTS.get(key)
-    if got is None:
-        if len(_FOOTPRINTS) >= FOOTPRINTS_KEPT:
-            _FOOTPRINTS.clear()
-        got = _FOOTPRINTS[key] = b.geometry().buffer(b.radius + grow, quad_segs=8)
-    return got
+    return _footprints([b], grow)[0]
+
+
+def _footprints(bodies: Sequence[Body], grow: float = 0.0) -> list[shapely.Geometry]:
+    """:func:`_footprint` of each of ``bodies``, the particles' discs not kept made in one
+    call (after the drift estimate changed, a replan's every believed position is new)."""
+    keys = [_key(b, grow) for b in bodies]
+    if len(_FOOTPRINTS) + len(keys) > FOOTPRINTS_KEPT:
+        _FOOTPRINTS.clear()
+    out = [_FOOTPRINTS.get(k) for k in keys]
+    new = [i for i, g in enumerate(out) if g is None]
+    discs = [i for i in new if not bodies[i].elongated]
+    if discs:
+        made = _discs(np.array([bodies[i].at for i in discs], dtype=float).reshape(-1, 2),
+                      np.array([bodies[i].radius + grow for i in discs], dtype=float))
+        for i, g in zip(discs, made):
+            out[i] = _FOOTPRINTS[keys[i]] = g
+    for i in new:
+        if out[i] is None:
+            b = bodies[i]
+            out[i] = _FOOTPRINTS[keys[i]] = b.geometry().buffer(b.radius + grow, quad_segs=8)
+    return out
 
 
 #: Footprints by what makes them: a replan builds the dependency graph over every object
@@ -78,9 +110,10 @@ def dependency_graph(moves: Sequence[tuple[str, str]], targets: Mapping[str, Bod
 
     # hard edges: slot holders leave first
     movable = [o for o in objects.values()]
-    tree = shapely.STRtree([_footprint(o) for o in movable])
+    tree = shapely.STRtree(_footprints(movable))
+    slots = dict(zip([t for t, _ in moves], _footprints([targets[t] for t, _ in moves])))
     for t, obj_id in moves:
-        slot = _footprint(targets[t])
+        slot = slots[t]
         for k in tree.query(slot, predicate="intersects"):
             holder = movable[k]
             if holder.id == obj_id or slot.intersection(_footprint(holder)).area < 1e-6:

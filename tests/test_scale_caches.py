@@ -395,3 +395,47 @@ def test_the_kept_moves_handed_out_never_change_as_moves_come_and_freeze(seed, n
         assert np.all(np.diff(times) >= 0)                                     # ... in order
     for view, copy, sview, scopy in seen:
         assert np.array_equal(view, copy) and np.array_equal(sview, scopy)
+
+
+def _same(a, b) -> bool:
+    """Two geometries of one type with the same coordinates to the bit."""
+    import shapely
+
+    return a.geom_type == b.geom_type and np.array_equal(shapely.get_coordinates(a), shapely.get_coordinates(b))
+
+
+_BODY = st.tuples(st.floats(-5e4, 5e4), st.floats(-5e4, 5e4), st.floats(0.5, 400.0),
+                  st.one_of(st.none(), st.tuples(st.floats(1.0, 8.0), st.floats(-360, 360))))
+
+
+def _bodies(specs) -> list[Body]:
+    return [Body(f"o{k}", "particle", (x, y), d) if rod is None else
+            Body(f"o{k}", "rod", (x, y), d, rod[1], d * rod[0]) for k, (x, y, d, rod) in enumerate(specs)]
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(_BODY, max_size=20))
+def test_the_cores_made_at_once_are_each_bodys_own_geometry(specs):
+    from nanoasm.bodies import geometries
+
+    bodies = _bodies(specs)
+    got = geometries(bodies)
+    assert got.shape == (len(bodies),)
+    assert all(_same(g, b.geometry()) for g, b in zip(got, bodies))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(_BODY, max_size=20), st.sampled_from([0.0, 7.5, 31.25]), st.integers(0, 2))
+def test_the_footprints_made_at_once_are_the_buffers_to_the_bit(specs, grow, kept):
+    """The dependency graph's footprints, the discs made from the unit circle in one call,
+    are the polygons ``buffer`` makes, whatever was kept from before (none, some, all,
+    of another size)."""
+    from nanoasm.planner import sequence
+
+    bodies = _bodies(specs)
+    sequence._FOOTPRINTS.clear()
+    sequence._footprints(bodies[: len(bodies) * kept // 2], grow)
+    sequence._footprints(bodies, 3.0 + grow)                 # kept, each of another size
+    for g, b in zip(sequence._footprints(bodies, grow), bodies):
+        assert _same(g, b.geometry().buffer(b.radius + grow, quad_segs=8))
+    sequence._FOOTPRINTS.clear()
