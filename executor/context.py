@@ -113,18 +113,26 @@ class RunContext:
         off = self.offset(t)
         self.ledger.drift.append((t, float(off[0]), float(off[1])))
 
+    def positions(self, ids) -> np.ndarray:
+        """:meth:`position` of each of ``ids``, ``(n, 2)``: those seen only in the first full
+        scan moved by their rows' drift in one product, each to the bit as one by one."""
+        belief, raw = self.belief, self.refs.raw
+        out = np.array([belief[i].at for i in ids], float).reshape(-1, 2)
+        skewed = [k for k, i in enumerate(ids) if i in raw]
+        if skewed:
+            tau = np.array([belief.seen[ids[k]].t - self.drift.epoch for k in skewed])
+            out[skewed] = self.drift.unskew(out[skewed], tau)
+        return out
+
     def environment(self) -> Environment:
         """The belief as the planner's environment: objects seen only in the first full
         scan moved by their row's drift, lost ones left out (where they were believed to
         be is where the scans did not find them). Objects given up on
         (:attr:`ExecOptions.max_failures`) are never assigned: they stay, obstacles."""
-        objs = []
-        for o in self.belief.objects.values():
-            if o.id in self.belief.lost:
-                continue
-            if o.id in self.refs.raw:
-                o = replace(o, at=tuple(float(v) for v in self.position(o.id)))
-            if o.id in self.ledger.given_up:
-                o = replace(o, confidence=0.0)
-            objs.append(o)
+        belief, raw, given_up = self.belief, self.refs.raw, self.ledger.given_up
+        objs = [o for o in belief.objects.values() if o.id not in belief.lost]
+        skewed = [k for k, o in enumerate(objs) if o.id in raw]
+        for k, (x, y) in zip(skewed, self.positions([objs[k].id for k in skewed]).tolist()):
+            objs[k] = objs[k].changed(at=(x, y))
+        objs = [o.changed(confidence=0.0) if o.id in given_up else o for o in objs]
         return Environment(self.belief.area, tuple(objs), self.belief.obstacles, "belief")

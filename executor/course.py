@@ -117,7 +117,7 @@ def correction(layout: Layout, belief: Belief, target_id: str, obj_id: str, used
     used[o.id] = used.get(o.id, 0) + 1
     solo = replace(layout, targets=(target,), tolerance=tight(layout))
     # the other objects are only in the way here: no confidence, never assigned
-    others = tuple(replace(b, confidence=0.0) for oid, b in belief.objects.items()
+    others = tuple(b.changed(confidence=0.0) for oid, b in belief.objects.items()
                    if oid != o.id and oid not in belief.lost)
     env = Environment(belief.area, (o, *others), belief.obstacles)
     plan, _ = plan_assembly(solo, env, options)

@@ -43,17 +43,13 @@ def filter_params(options: ExecOptions) -> DriftFilterParams:
     """The drift filter's parameters for a run's options: the nominal creep, with the
     uncertainty of its amplitude (a real scanner's creep is known to about ±30 %)."""
     creep = CreepModelParams(amplitude_std=options.creep_amplitude_std, tau_std=options.creep_tau_std)
-    return DriftFilterParams(q=options.drift_q, q_offset=options.drift_q_offset, offset_std=1.0,
-                             creep=creep)
+    return DriftFilterParams(q=options.drift_q, q_offset=options.drift_q_offset, offset_std=1.0, creep=creep)
 
 
 class Kalman:
     """Kalman and full: the drift filter, its references and the creep of the moves."""
 
-    references_are_objects = True
-    emits = True
-    bootstraps = True
-    uses_landmarks = True
+    references_are_objects = emits = bootstraps = uses_landmarks = True
 
     def __init__(self, origin, epoch: float, options: ExecOptions):
         self.origin = np.asarray(origin, float)
@@ -168,10 +164,14 @@ class Kalman:
         carried."""
         self.scan.scan_ended(self.move_log, None if t is None else t - self.epoch)
 
-    def unskew(self, at: np.ndarray, tau: float) -> np.ndarray:
+    def unskew(self, at: np.ndarray, tau) -> np.ndarray:
         """A full-scan position seen ``tau`` s after the epoch, its row's drift taken out
-        (:class:`~nanoasm.executor.scan_drift.ScanDrift`, with ``θ`` as now known)."""
+        (:class:`~nanoasm.executor.scan_drift.ScanDrift`, with ``θ`` as now known); or
+        positions ``(n, 2)`` seen at times ``tau`` ``(n,)``, each to the bit the one's."""
         theta, _ = self.scan_theta()
+        if np.ndim(tau):        # a belief's thousand positions, in one product
+            J = np.array([self.scan.jacobian(t) for t in tau]).reshape(-1, 2, theta.size)
+            return at - J @ theta - J[:, :, EPS] - np.array([self.scan.step(t) for t in tau]).reshape(-1, 2)
         return at - self.scan.jacobian(tau) @ theta - self.scan.creep_at(tau) - self.scan.step(tau)
 
     def skew_cov(self, tau: float) -> np.ndarray:

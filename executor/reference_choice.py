@@ -80,7 +80,8 @@ def best_object(ctx, est, t: float, full_scan_var: float, exclude=frozenset()) -
     off = est.offset(t)
     trace = float(np.trace(est.filter.offset(est.clamp(t)).cov)) * (1.0 + 1e-9)    # what the gains are of
     floor = ctx.options.line_factor * ctx.options.r_max_floor
-    bounds = np.array([trace / max(_seconds(ctx, oid, floor, off), 1e-9) for oid in ids])
+    at = ctx.positions(ids)
+    bounds = np.array([trace / max(_seconds(ctx, oid, floor, off, at[k]), 1e-9) for k, oid in enumerate(ids)])
     order = np.argsort(-bounds, kind="stable")
     chosen = None
     for start in range(0, len(order), BATCH):
@@ -110,14 +111,15 @@ def _usable(ctx) -> list[str]:
             and oid not in ctx.moving and o.kind == "particle" and not o.edge]
 
 
-def _seconds(ctx, oid, r_max: float, off) -> float:
+def _seconds(ctx, oid, r_max: float, off, at=None) -> float:
     """Instrument seconds of a reference scan of ``oid`` (two lines through it, ``r_max``
-    nm on either side beyond its radius and margin) and of the travel to it."""
+    nm on either side beyond its radius and margin) and of the travel to it (from its
+    believed position ``at``, if known, :meth:`~.context.RunContext.position`)."""
     o = ctx.belief[oid]
     spacing, margin = ctx.scan_opts.sampling(o.diameter)
     length = 2 * (o.radius + r_max + margin)
     return (ctx.timing.seconds(2, 2 * int(length / spacing))
-            + travel_cost(ctx.here, ctx.position(oid) + off, ctx.config.max_speed))
+            + travel_cost(ctx.here, (ctx.position(oid) if at is None else at) + off, ctx.config.max_speed))
 
 
 def _weighed(ctx, est, t: float, ids, full_scan_var: float, off) -> list[Candidate]:

@@ -439,3 +439,66 @@ def test_the_footprints_made_at_once_are_the_buffers_to_the_bit(specs, grow, kep
     for g, b in zip(sequence._footprints(bodies, grow), bodies):
         assert _same(g, b.geometry().buffer(b.radius + grow, quad_segs=8))
     sequence._FOOTPRINTS.clear()
+
+
+@pytest.mark.parametrize("state", ["bootstrap", "filter", "measured", "jumped"])
+def test_the_beliefs_positions_at_once_are_each_ones_own_to_the_bit(state):
+    """:meth:`RunContext.environment` and :meth:`RunContext.positions` put every object seen
+    only in the full scan back by its row's drift in one product: each position to the bit
+    the one :meth:`RunContext.position` gives alone, and the environment the one made with
+    ``dataclasses.replace`` object by object (given-up objects without confidence, lost
+    ones left out), in every state of the drift estimate."""
+    from nanoasm.executor.belief import Seen
+
+    rng = np.random.default_rng(5)
+    objs = [EnvObject(f"o{k}", "particle", tuple(rng.uniform(300, 3700, 2)), float(rng.uniform(70, 110)))
+            for k in range(30)]
+    objs.append(EnvObject("r", "rod", (2000.0, 2100.0), 40.0, 30.0, 400.0))
+    belief = Belief(Environment((4000.0, 4000.0), tuple(objs), ()), 0.0)
+    for k, o in enumerate(objs):                                  # each row its own time
+        belief.seen[o.id] = Seen(float(rng.uniform(100.0, 600.0)), np.eye(2) * 4.0)
+    refs = References.of_scan(objs, belief.seen)
+    est = Kalman((0.0, 0.0), 100.0, OPTS)
+    est.moved_to((0.0, 0.0), 101.0)
+    est.moved_to((3000.0, 0.0), 102.0)
+    est.full_scan_done(610.0)
+    if state != "bootstrap":
+        est.restart(620.0)
+    if state in ("measured", "jumped"):
+        est.measure("o0", np.asarray(objs[0].at) + (3.0, -2.0), np.eye(2), 660.0, refs, [], set())
+    if state == "jumped":
+        est.scan.stepped, est.scan.tau_jump, est.scan.jump = True, 250.0, np.array([180.0, -75.0])
+    ctx = RunContext(InstrumentConfig(), OPTS, est, belief, refs)
+    ctx.observe("o2", (objs[2].at[0] + 1.0, objs[2].at[1]), 670.0, np.eye(2) * 3.0)    # no longer raw
+    belief.lose("o3")
+    ctx.ledger.given_up.add("o4")
+    ids = list(belief.objects)
+    one = np.array([ctx.position(i) for i in ids])
+    assert np.array_equal(ctx.positions(ids), one)
+    assert np.array_equal(ctx.positions(ids[::-1]), one[::-1])
+    assert ctx.positions([]).shape == (0, 2)
+    want = []
+    for o in belief.objects.values():
+        if o.id in belief.lost:
+            continue
+        if o.id in refs.raw:
+            o = replace(o, at=tuple(float(v) for v in ctx.position(o.id)))
+        want.append(replace(o, confidence=0.0) if o.id == "o4" else o)
+    got = ctx.environment().objects
+    assert [(o.id, o.at, o.confidence) for o in got] == [(o.id, o.at, o.confidence) for o in want]
+    assert got == tuple(want) and "o3" not in {o.id for o in got}
+    assert any(o.at != b.at for o, b in zip(got, objs))           # the rows' drift did move them
+
+
+def test_an_objects_new_pose_or_confidence_is_checked_as_a_new_object_is():
+    o = EnvObject("o1", "rod", (1.0, 2.0), 40.0, 30.0, 400.0, 0.7, True)
+    for change in (dict(at=(5.0, 6.0)), dict(confidence=0.0), dict(at=(-3.0, 1e5), confidence=1.0)):
+        assert o.changed(**change) == replace(o, **change)
+    assert o == EnvObject("o1", "rod", (1.0, 2.0), 40.0, 30.0, 400.0, 0.7, True)       # itself unchanged
+    for bad in (dict(at=(math.nan, 0.0)), dict(at=(1.0,)), dict(at=(0.0, math.inf)), dict(confidence=1.5),
+                dict(confidence=-0.1)):
+        with pytest.raises(ValueError) as mine:
+            o.changed(**bad)
+        with pytest.raises(ValueError) as theirs:
+            replace(o, **bad)
+        assert str(mine.value) == str(theirs.value)
