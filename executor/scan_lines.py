@@ -10,6 +10,7 @@ nm, angles in degrees.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, replace
@@ -122,17 +123,24 @@ class ScanOptions:
             raise ParamError("fraction", f"must be below 1, got {self.fraction!r}")
 
     def resolved(self, diameter: float) -> ScanOptions:
-        """These options with every default filled in for an object of ``diameter``."""
+        """These options with every default filled in for an object of ``diameter`` (the
+        same options, frozen, for as long as they and the diameter are asked for again:
+        a push's scans ask a dozen times, each a validation of every field)."""
         d = number("diameter", diameter, positive=True)
-        spacing, margin = self.sampling(d)
-        height = self.height if self.height is not None else d
-        return replace(self, spacing=spacing, margin=margin, height=height)
+        return _resolved(self, d)
 
     def sampling(self, diameter: float) -> tuple[float, float]:
         """``(spacing, margin)`` (nm) of :meth:`resolved` for an object of ``diameter``,
         without making the options (choosing among a thousand references)."""
         spacing = self.spacing if self.spacing is not None else min(1.0, diameter / 20)
         return spacing, self.margin if self.margin is not None else diameter / 2 + 10 * spacing
+
+
+@functools.lru_cache(maxsize=1024)
+def _resolved(opts: ScanOptions, d: float) -> ScanOptions:
+    spacing, margin = opts.sampling(d)
+    height = opts.height if opts.height is not None else d
+    return replace(opts, spacing=spacing, margin=margin, height=height)
 
 
 #: The options every pattern uses unless given others.

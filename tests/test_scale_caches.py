@@ -502,3 +502,22 @@ def test_an_objects_new_pose_or_confidence_is_checked_as_a_new_object_is():
         with pytest.raises(ValueError) as theirs:
             replace(o, **bad)
         assert str(mine.value) == str(theirs.value)
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from([None, 0.5, 2.0]), st.sampled_from([None, 0.0, 30.0]),
+                          st.sampled_from([None, 12.0]), st.floats(1.0, 500.0)), min_size=1, max_size=12))
+def test_scan_options_resolved_again_are_those_made_anew(asks):
+    """:meth:`ScanOptions.resolved`, kept by options and diameter, is what filling in the
+    defaults anew gives, whichever options and diameters were asked before."""
+    from nanoasm.executor.scan_lines import ScanOptions
+
+    for spacing, margin, height, d in asks + asks[::-1]:
+        opts = ScanOptions(spacing=spacing, margin=margin, height=height)
+        sp = spacing if spacing is not None else min(1.0, d / 20)
+        want = replace(opts, spacing=sp, margin=margin if margin is not None else d / 2 + 10 * sp,
+                       height=height if height is not None else d)
+        got = opts.resolved(d)
+        assert got == want and type(got.height) is float
+    with pytest.raises(Exception, match="diameter"):
+        ScanOptions().resolved(float("nan"))
