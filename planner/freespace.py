@@ -4,7 +4,10 @@ Everything in the way is a *core* geometry (a polygon, a point or a segment) wit
 radius: keep-outs and obstacles are polygons of radius 0, objects are the cores of their
 footprints. A footprint of core ``g`` and radius ``r`` is free when for every entry
 ``distance(g, core) >= r + radius + clearance``. Fixed things sit in one STRtree built
-once; movable objects in a second one rebuilt lazily after moves.
+once; movable objects in an array of their cores' bounding boxes, which a move updates
+in place (an STRtree rebuilt after every planned push cost a plan O(N log N) a push):
+a query's candidates are the boxes within reach of its own, one vectorised comparison,
+and the same exact distances decide as before.
 """
 
 from __future__ import annotations
@@ -15,6 +18,10 @@ import numpy as np
 import shapely
 
 from nanoasm.bodies import Body, geometries
+
+
+#: How much (nm) wider than a query's reach the movable boxes it takes are: float rounding.
+BOX_SLACK = 1e-6
 
 
 def _all_inside(geoms: np.ndarray, radius: float, area: tuple[float, float]) -> bool:
@@ -50,34 +57,39 @@ class FreeSpace:
         self._fixed_rmax = float(self._fixed_r.max()) if len(fixed) else 0.0
         self.bodies: dict[str, Body] = dict(bodies)
         self._dirty = True              # every core to make anew
-        self._moved = False             # some cores replaced: the tree to build anew
         self._slot: dict[str, int] = {}
 
     # -- movable bodies ---------------------------------------------------------------
     def move(self, body: Body) -> None:
-        """Put ``body`` (by id) at its new pose: its core alone is made anew (the tree is
-        rebuilt at the next query, in one call), so a plan of many pushes among many
-        objects does not remake every object's geometry after each push."""
+        """Put ``body`` (by id) at its new pose: its core and box alone are made anew, so
+        a plan of many pushes among many objects does not remake every object's geometry
+        (or an index of them) after each push."""
         self.bodies[body.id] = body
         k = self._slot.get(body.id)
         if self._dirty or k is None:
             self._dirty = True
             return
-        self._cores[k] = body.geometry()
+        self._cores[k] = core = body.geometry()
         self._radii[k] = body.radius
-        self._moved = True
+        self._boxes[k] = shapely.bounds(core)
+        self._rmax = max(self._rmax, float(body.radius))     # an upper bound: reach only widens
 
     def _index(self) -> None:
-        if self._dirty:
-            self._ids = list(self.bodies)
-            self._slot = {i: k for k, i in enumerate(self._ids)}
-            self._cores = geometries([self.bodies[i] for i in self._ids])
-            self._radii = np.array([self.bodies[i].radius for i in self._ids], dtype=float)
-        elif not self._moved:
+        if not self._dirty:
             return
-        self._tree = shapely.STRtree(self._cores) if self._ids else None
+        self._ids = list(self.bodies)
+        self._slot = {i: k for k, i in enumerate(self._ids)}
+        self._cores = geometries([self.bodies[i] for i in self._ids])
+        self._radii = np.array([self.bodies[i].radius for i in self._ids], dtype=float)
+        self._boxes = shapely.bounds(self._cores).reshape(-1, 4)
         self._rmax = float(self._radii.max()) if self._ids else 0.0
-        self._dirty = self._moved = False
+        self._dirty = False
+
+    def _boxed(self, x0: float, y0: float, x1: float, y1: float, reach: float) -> np.ndarray:
+        """Slots of the movable cores whose boxes come within ``reach`` of the box (a
+        hair more): every core within ``reach`` of a geometry inside it is among them."""
+        m, b = reach + BOX_SLACK, self._boxes
+        return np.flatnonzero((b[:, 0] <= x1 + m) & (b[:, 2] >= x0 - m) & (b[:, 1] <= y1 + m) & (b[:, 3] >= y0 - m))
 
     # -- queries ----------------------------------------------------------------------
     def inside(self, geom: shapely.Geometry, radius: float) -> bool:
@@ -118,7 +130,10 @@ class FreeSpace:
                  clearance: float | None = None) -> list[str]:
         """Ids of movable bodies within reach of the footprint, sorted."""
         self._index()
-        idx = self._hits(geom, radius, self._tree, self._cores, self._radii, self._rmax, clearance)
+        reach = radius + (self.clearance if clearance is None else clearance)
+        idx = self._boxed(*geom.bounds, reach + self._rmax)
+        if idx.size:
+            idx = idx[shapely.distance(geom, self._cores[idx]) < reach + self._radii[idx] - 1e-9]
         skip = set(ignore)
         return sorted(self._ids[i] for i in idx if self._ids[i] not in skip)
 
@@ -147,9 +162,17 @@ class FreeSpace:
                          clearance, set(exempt_fixed)):
             return False
         self._index()
+        if not self._ids:
+            return True
         skip = {self._slot[i] for i in set(ignore) if i in self._slot}
-        return not self._any_hit(geoms, radius, self._tree, self._cores, self._radii, self._rmax,
-                                 clearance, skip)
+        reach = radius + (self.clearance if clearance is None else clearance)
+        g, b, m = shapely.bounds(geoms).reshape(-1, 4), self._boxes, reach + self._rmax + BOX_SLACK
+        gi, ci = np.nonzero((b[None, :, 0] <= g[:, 2, None] + m) & (b[None, :, 2] >= g[:, 0, None] - m)
+                            & (b[None, :, 1] <= g[:, 3, None] + m) & (b[None, :, 3] >= g[:, 1, None] - m))
+        if gi.size == 0:
+            return True
+        near = ci[shapely.distance(geoms[gi], self._cores[ci]) < reach + self._radii[ci] - 1e-9]
+        return not near.size or set(near.tolist()) <= skip
 
     def nearby(self, bounds: tuple[float, float, float, float], radius: float,
                clearance: float | None = None) -> "Nearby":
@@ -182,13 +205,14 @@ class FreeSpace:
         best = min(x0, y0, self.area[0] - x1, self.area[1] - y1) - radius
         reach = radius + self.clearance
         skip = set(ignore)
+        # the movable boxes give a few more than the tree would, each beyond the horizon
         for tree, cores, radii, rmax, ids in (
                 (self._fixed_tree, self._fixed, self._fixed_r, self._fixed_rmax, None),
-                (self._tree, getattr(self, "_cores", None), getattr(self, "_radii", None), self._rmax,
-                 getattr(self, "_ids", None))):
+                (self._ids or None, self._cores, self._radii, self._rmax, self._ids)):
             if tree is None:
                 continue
-            idx = tree.query(geom, predicate="dwithin", distance=reach + rmax + horizon)
+            idx = (tree.query(geom, predicate="dwithin", distance=reach + rmax + horizon) if ids is None else
+                   self._boxed(x0, y0, x1, y1, reach + rmax + horizon))
             if ids is not None:
                 idx = np.array([i for i in idx if ids[i] not in skip], dtype=int)
             if idx.size:
@@ -221,8 +245,8 @@ class Nearby:
         else:
             fi = np.empty(0, dtype=int)
         self._f_idx, self._f_cores, self._f_r = fi, space._fixed[fi], space._fixed_r[fi]
-        if space._ids and space._tree is not None:
-            mi = space._tree.query(box(reach + space._rmax))
+        if space._ids:
+            mi = space._boxed(x0, y0, x1, y1, reach + space._rmax)
         else:
             mi = np.empty(0, dtype=int)
         self._m_ids = [space._ids[i] for i in mi]

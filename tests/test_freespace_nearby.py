@@ -89,3 +89,57 @@ def test_inside_from_the_ends_is_inside_from_the_cores(x, y, angle, length, radi
     flat = ends.reshape(-1, 2)
     assert space.inside_box(*flat.min(axis=0), *flat.max(axis=0), radius) == \
         _all_inside(_cores_of(ends, length / 2), radius, space.area)
+
+
+def _plain_hits(space: FreeSpace, geom, radius: float, clearance) -> list[str]:
+    """Every movable body within reach of the footprint, by the definition: one distance each."""
+    reach = radius + (space.clearance if clearance is None else clearance)
+    return sorted(i for i, b in space.bodies.items() if shapely.distance(geom, b.geometry()) < reach + b.radius - 1e-9)
+
+
+def _plain_slack(space: FreeSpace, geom, radius: float, ignore, horizon: float) -> float:
+    x0, y0, x1, y1 = geom.bounds
+    best = min(x0, y0, space.area[0] - x1, space.area[1] - y1) - radius
+    reach = radius + space.clearance
+    for g, r in zip(space._fixed, space._fixed_r):
+        best = min(best, float(shapely.distance(geom, g)) - r - reach)
+    for i, b in space.bodies.items():
+        if i not in ignore:
+            best = min(best, float(shapely.distance(geom, b.geometry())) - b.radius - reach)
+    return min(best, horizon)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 50),
+       moves=st.lists(st.tuples(st.integers(0, 27), st.floats(0, 2000), st.floats(0, 2000), st.floats(20, 140),
+                                st.booleans()), max_size=8),
+       queries=st.lists(st.tuples(st.floats(0, 2000), st.floats(0, 2000), st.floats(-300, 300), st.floats(-300, 300),
+                                  st.floats(1, 60), st.sampled_from([None, 0.0, 12.0])), min_size=1, max_size=6),
+       ignore=st.sampled_from([(), ("r",), ("p3", "r")]))
+def test_the_movable_bodies_found_by_their_boxes_are_those_within_reach(seed, moves, queries, ignore):
+    """The movable bodies' index (boxes updated in place as bodies move, grow, arrive)
+    finds, for points, segments and sweeps, exactly the bodies the definition finds one by
+    one, and the slack the definition gives, between and after moves."""
+    space = _space(seed, 25.0)
+    for step in [*moves, None]:
+        for qx, qy, dx, dy, radius, clearance in queries:
+            for geom in (shapely.Point(qx, qy), shapely.LineString([(qx, qy), (qx + dx + 1.0, qy + dy)])):
+                want = [i for i in _plain_hits(space, geom, radius, clearance) if i not in ignore]
+                assert space.blockers(geom, radius, ignore, clearance) == want
+                assert space.slack(geom, radius, ignore) == _plain_slack(space, geom, radius, set(ignore), 1e3)
+            near = space.bodies[sorted(space.bodies)[int(qx) % len(space.bodies)]]      # one just within reach
+            reach = radius + (space.clearance if clearance is None else clearance) + 0.5 * near.radius
+            cores = np.array([shapely.Point(qx + dx * t, qy + dy * t) for t in (0.0, 0.5, 1.0)]
+                             + [shapely.Point(near.at[0] + reach, near.at[1])], dtype=object)
+            want = [i for i in _plain_hits(space, cores[-1], radius, clearance) if i not in ignore]
+            assert space.blockers(cores[-1], radius, ignore, clearance) == want
+            free = all(not [i for i in _plain_hits(space, g, radius, clearance) if i not in ignore] for g in cores)
+            inside = _all_inside(cores, radius, space.area)
+            clear = not any(space.fixed_hits(g, radius, clearance).size for g in cores)
+            assert space.all_free(cores, radius, ignore, clearance=clearance) == (inside and clear and free)
+        if step is None:
+            break
+        k, x, y, d, rod = step
+        oid = "r" if k == 27 else f"p{k}"       # 26: a body new to the space
+        body = (Body(oid, "rod", (x, y), d / 3, 40.0 + x / 10, d * 4) if rod else Body(oid, "particle", (x, y), d))
+        space.move(body)
