@@ -18,6 +18,7 @@ from nanoasm.planner.assign import in_slot
 from nanoasm.world.environment import Environment
 
 from .belief import Belief
+from .json_parts import Kept, PartsDict, kept
 
 #: An object the tip slipped over is pushed with this many times the preload, again...
 SLIP_PRELOAD_STEP = 1.6
@@ -32,10 +33,14 @@ class Course:
 
     starts: dict[int, tuple] = field(default_factory=dict)
     preload: dict[str, float] = field(default_factory=dict)
+    #: ``starts`` as JSON types, a kept part (:mod:`.json_parts`) until :meth:`follow`
+    #: changes them: the same hundreds of starts in every checkpoint between replans
+    _kept: tuple[dict, Kept] | None = field(default=None, init=False, repr=False, compare=False)
 
     def follow(self, env: Environment, ops: list[Operation], *, extend: bool = False) -> None:
         """Expect ``ops`` from the poses of ``env`` (adding to the present ones if ``extend``)."""
         new = starts(env, ops)
+        self._kept = None
         if extend:
             self.starts.update(new)
         else:
@@ -46,8 +51,9 @@ class Course:
         self.preload[obj_id] = min(self.preload.get(obj_id, 1.0) * SLIP_PRELOAD_STEP, SLIP_PRELOAD_MAX)
 
     def state_dict(self) -> dict:
-        return {"plan_start": {str(k): [list(at), ang] for k, (at, ang) in self.starts.items()},
-                "preload_factor": dict(self.preload)}
+        if self._kept is None or self._kept[0] is not self.starts:
+            self._kept = (self.starts, kept({str(k): [list(at), ang] for k, (at, ang) in self.starts.items()}))
+        return PartsDict(plan_start=self._kept[1], preload_factor=dict(self.preload))
 
     @classmethod
     def from_state(cls, state: dict) -> Course:

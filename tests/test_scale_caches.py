@@ -521,3 +521,34 @@ def test_scan_options_resolved_again_are_those_made_anew(asks):
         assert got == want and type(got.height) is float
     with pytest.raises(Exception, match="diameter"):
         ScanOptions().resolved(float("nan"))
+
+
+def test_the_courses_starts_in_a_checkpoint_are_their_json_as_they_change():
+    """The course's starts are encoded once while they stand (the same kept part from one
+    checkpoint to the next) and anew after every :meth:`Course.follow`, extending or not:
+    the checkpoint's JSON is always that of the starts as they are."""
+    import json
+
+    from nanoasm.executor import json_parts
+    from nanoasm.executor.course import Course
+    from nanoasm.planner import Expect, Operation
+
+    def ops(first, n, x):
+        return [Operation(first + k, f"o{k % 3}", None, ((x, 0.0), (x + 10.0, 0.0)), Expect((x + 10.0 * k, 1.0), None))
+                for k in range(n)]
+
+    env = Environment((4000.0, 4000.0), tuple(EnvObject(f"o{k}", "particle", (100.0 * k, 50.0), 80.0)
+                                             for k in range(3)), ())
+    course = Course()
+    for step, (first, n, x, extend) in enumerate([(1, 4, 5.0, False), (5, 2, 7.5, True), (1, 3, 9.0, False),
+                                                  (4, 1, 2.0, True)]):
+        course.follow(env, ops(first, n, x), extend=extend)
+        course.slipped(f"o{step % 3}")
+        one, two = course.state_dict(), course.state_dict()
+        assert one["plan_start"] is two["plan_start"]                     # kept while the starts stand
+        plain = {"plan_start": {str(k): [list(at), ang] for k, (at, ang) in course.starts.items()},
+                 "preload_factor": dict(course.preload)}
+        assert json_parts.dumps({"course": one}) == json.dumps({"course": plain}, separators=(",", ":"))
+        assert json_parts.dumps(json_parts.PartsDict(course=two)) == json.dumps({"course": plain},
+                                                                                separators=(",", ":"))
+        assert Course.from_state(json.loads(json_parts.dumps(one))) == course
