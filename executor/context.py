@@ -131,8 +131,7 @@ class RunContext:
         (:attr:`ExecOptions.max_failures`) are never assigned: they stay, obstacles."""
         belief, raw, given_up = self.belief, self.refs.raw, self.ledger.given_up
         objs = [o for o in belief.objects.values() if o.id not in belief.lost]
-        skewed = [k for k, o in enumerate(objs) if o.id in raw]
-        for k, (x, y) in zip(skewed, self.positions([objs[k].id for k in skewed]).tolist()):
-            objs[k] = objs[k].changed(at=(x, y))
+        at = self.positions([o.id for o in objs]).tolist()
+        objs = [o.changed(at=(x, y)) if o.id in raw else o for o, (x, y) in zip(objs, at)]
         objs = [o.changed(confidence=0.0) if o.id in given_up else o for o in objs]
         return Environment(self.belief.area, tuple(objs), self.belief.obstacles, "belief")

@@ -33,25 +33,21 @@ class Course:
 
     starts: dict[int, tuple] = field(default_factory=dict)
     preload: dict[str, float] = field(default_factory=dict)
-    #: ``starts`` as JSON types, a kept part (:mod:`.json_parts`) until :meth:`follow`
-    #: changes them: the same hundreds of starts in every checkpoint between replans
+    #: ``(starts, their JSON types as a kept part)`` (:mod:`.json_parts`): the same
+    #: hundreds of starts in every checkpoint until :meth:`follow` makes new ones
     _kept: tuple[dict, Kept] | None = field(default=None, init=False, repr=False, compare=False)
 
     def follow(self, env: Environment, ops: list[Operation], *, extend: bool = False) -> None:
         """Expect ``ops`` from the poses of ``env`` (adding to the present ones if ``extend``)."""
         new = starts(env, ops)
-        self._kept = None
-        if extend:
-            self.starts.update(new)
-        else:
-            self.starts = new
+        self.starts = {**self.starts, **new} if extend else new     # a new dict: the kept part goes with it
 
     def slipped(self, obj_id: str) -> None:
         """The tip went over ``obj_id``: push it harder next time."""
         self.preload[obj_id] = min(self.preload.get(obj_id, 1.0) * SLIP_PRELOAD_STEP, SLIP_PRELOAD_MAX)
 
     def state_dict(self) -> dict:
-        if self._kept is None or self._kept[0] is not self.starts:
+        if self._kept is None or self._kept[0] is not self.starts:     # the starts are never changed in place
             self._kept = (self.starts, kept({str(k): [list(at), ang] for k, (at, ang) in self.starts.items()}))
         return PartsDict(plan_start=self._kept[1], preload_factor=dict(self.preload))
 

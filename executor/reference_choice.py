@@ -111,21 +111,22 @@ def _usable(ctx) -> list[str]:
             and oid not in ctx.moving and o.kind == "particle" and not o.edge]
 
 
-def _seconds(ctx, oid, r_max: float, off, at=None) -> float:
+def _seconds(ctx, oid, r_max: float, off, at) -> float:
     """Instrument seconds of a reference scan of ``oid`` (two lines through it, ``r_max``
-    nm on either side beyond its radius and margin) and of the travel to it (from its
-    believed position ``at``, if known, :meth:`~.context.RunContext.position`)."""
+    nm on either side beyond its radius and margin) and of the travel to it from its
+    believed position ``at`` (:meth:`~.context.RunContext.positions`)."""
     o = ctx.belief[oid]
     spacing, margin = ctx.scan_opts.sampling(o.diameter)
     length = 2 * (o.radius + r_max + margin)
     return (ctx.timing.seconds(2, 2 * int(length / spacing))
-            + travel_cost(ctx.here, (ctx.position(oid) if at is None else at) + off, ctx.config.max_speed))
+            + travel_cost(ctx.here, at + off, ctx.config.max_speed))
 
 
 def _weighed(ctx, est, t: float, ids, full_scan_var: float, off) -> list[Candidate]:
     R = np.eye(2) * (LOCATED_VAR + full_scan_var)
     full_scan, gains = _terms(ctx, est, t, ids, R)
-    return [Candidate("object", oid, np.eye(2), R, _seconds(ctx, oid, ctx.r_max(t, oid, full_scan[k]), off),
+    at = ctx.positions(ids)
+    return [Candidate("object", oid, np.eye(2), R, _seconds(ctx, oid, ctx.r_max(t, oid, full_scan[k]), off, at[k]),
                       float(gains[k])) for k, oid in enumerate(ids)]
 
 

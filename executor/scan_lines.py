@@ -125,7 +125,7 @@ class ScanOptions:
     def resolved(self, diameter: float) -> ScanOptions:
         """These options with every default filled in for an object of ``diameter`` (the
         same options, frozen, for as long as they and the diameter are asked for again:
-        a push's scans ask a dozen times, each a validation of every field)."""
+        a run asks about six times a push, each a validation of every field)."""
         d = number("diameter", diameter, positive=True)
         return _resolved(self, d)
 

@@ -20,6 +20,12 @@ from .schema import Point, Table
 TOUCH_EPS = 1e-9
 
 
+def check_at(body_id: str, at) -> None:
+    """A body's ``at`` is two finite numbers (``ValueError`` naming ``body_id`` if not)."""
+    if len(at) != 2 or not all(math.isfinite(v) for v in at):
+        raise ValueError(f"{body_id}: at must be two finite numbers")
+
+
 @dataclass(frozen=True)
 class Body:
     """A particle or rod: ``at`` is its centre, ``angle`` and ``length`` are for rods."""
@@ -34,8 +40,7 @@ class Body:
     def __post_init__(self) -> None:
         if not isinstance(self.id, str) or not self.id:
             raise ValueError("id must be a non-empty string")
-        if len(self.at) != 2 or not all(math.isfinite(v) for v in self.at):
-            raise ValueError(f"{self.id}: at must be two finite numbers")
+        check_at(self.id, self.at)
         if not (math.isfinite(self.diameter) and self.diameter > 0):
             raise ValueError(f"{self.id}: diameter must be positive and finite")
         if self.elongated:

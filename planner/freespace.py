@@ -85,11 +85,19 @@ class FreeSpace:
         self._rmax = float(self._radii.max()) if self._ids else 0.0
         self._dirty = False
 
-    def _boxed(self, x0: float, y0: float, x1: float, y1: float, reach: float) -> np.ndarray:
-        """Slots of the movable cores whose boxes come within ``reach`` of the box (a
-        hair more): every core within ``reach`` of a geometry inside it is among them."""
-        m, b = reach + BOX_SLACK, self._boxes
-        return np.flatnonzero((b[:, 0] <= x1 + m) & (b[:, 2] >= x0 - m) & (b[:, 1] <= y1 + m) & (b[:, 3] >= y0 - m))
+    def _boxed(self, boxes, reach: float) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs (box, slot) of ``boxes`` ``(m, 4)`` and the movable cores whose boxes come
+        within ``reach`` of them (a hair more): every core within ``reach`` of a geometry
+        inside a box is paired with it."""
+        g, b, m = np.asarray(boxes, float).reshape(-1, 4), self._boxes, reach + BOX_SLACK
+        return np.nonzero((b[None, :, 0] <= g[:, 2, None] + m) & (b[None, :, 2] >= g[:, 0, None] - m)
+                          & (b[None, :, 1] <= g[:, 3, None] + m) & (b[None, :, 3] >= g[:, 1, None] - m))
+
+    def _movable_hits(self, geoms: np.ndarray, radius: float, clearance: float | None) -> np.ndarray:
+        """Slots of the movable cores within reach of any footprint (``geoms``, ``radius``)."""
+        reach = radius + (self.clearance if clearance is None else clearance)
+        gi, ci = self._boxed(shapely.bounds(geoms), reach + self._rmax)
+        return ci[shapely.distance(geoms[gi], self._cores[ci]) < reach + self._radii[ci] - 1e-9]
 
     # -- queries ----------------------------------------------------------------------
     def inside(self, geom: shapely.Geometry, radius: float) -> bool:
@@ -130,12 +138,9 @@ class FreeSpace:
                  clearance: float | None = None) -> list[str]:
         """Ids of movable bodies within reach of the footprint, sorted."""
         self._index()
-        reach = radius + (self.clearance if clearance is None else clearance)
-        idx = self._boxed(*geom.bounds, reach + self._rmax)
-        if idx.size:
-            idx = idx[shapely.distance(geom, self._cores[idx]) < reach + self._radii[idx] - 1e-9]
         skip = set(ignore)
-        return sorted(self._ids[i] for i in idx if self._ids[i] not in skip)
+        return sorted(self._ids[i] for i in self._movable_hits(np.array([geom]), radius, clearance).tolist()
+                      if self._ids[i] not in skip)
 
     def _any_hit(self, geoms: np.ndarray, radius: float, tree, cores, radii, rmax, clearance,
                  skip) -> bool:
@@ -162,17 +167,8 @@ class FreeSpace:
                          clearance, set(exempt_fixed)):
             return False
         self._index()
-        if not self._ids:
-            return True
         skip = {self._slot[i] for i in set(ignore) if i in self._slot}
-        reach = radius + (self.clearance if clearance is None else clearance)
-        g, b, m = shapely.bounds(geoms).reshape(-1, 4), self._boxes, reach + self._rmax + BOX_SLACK
-        gi, ci = np.nonzero((b[None, :, 0] <= g[:, 2, None] + m) & (b[None, :, 2] >= g[:, 0, None] - m)
-                            & (b[None, :, 1] <= g[:, 3, None] + m) & (b[None, :, 3] >= g[:, 1, None] - m))
-        if gi.size == 0:
-            return True
-        near = ci[shapely.distance(geoms[gi], self._cores[ci]) < reach + self._radii[ci] - 1e-9]
-        return not near.size or set(near.tolist()) <= skip
+        return set(self._movable_hits(geoms, radius, clearance).tolist()) <= skip
 
     def nearby(self, bounds: tuple[float, float, float, float], radius: float,
                clearance: float | None = None) -> "Nearby":
@@ -205,16 +201,12 @@ class FreeSpace:
         best = min(x0, y0, self.area[0] - x1, self.area[1] - y1) - radius
         reach = radius + self.clearance
         skip = set(ignore)
-        # the movable boxes give a few more than the tree would, each beyond the horizon
-        for tree, cores, radii, rmax, ids in (
-                (self._fixed_tree, self._fixed, self._fixed_r, self._fixed_rmax, None),
-                (self._ids or None, self._cores, self._radii, self._rmax, self._ids)):
-            if tree is None:
-                continue
-            idx = (tree.query(geom, predicate="dwithin", distance=reach + rmax + horizon) if ids is None else
-                   self._boxed(x0, y0, x1, y1, reach + rmax + horizon))
-            if ids is not None:
-                idx = np.array([i for i in idx if ids[i] not in skip], dtype=int)
+        fixed = (self._fixed_tree.query(geom, predicate="dwithin", distance=reach + self._fixed_rmax + horizon)
+                 if self._fixed_tree is not None else np.empty(0, dtype=int))
+        # the movable boxes give a few more than a tree's distance query would, each beyond the horizon
+        movable = np.array([i for i in self._boxed([geom.bounds], reach + self._rmax + horizon)[1].tolist()
+                            if self._ids[i] not in skip], dtype=int)
+        for idx, cores, radii in ((fixed, self._fixed, self._fixed_r), (movable, self._cores, self._radii)):
             if idx.size:
                 d = shapely.distance(geom, cores[idx]) - radii[idx] - reach
                 best = min(best, float(d.min()))
@@ -245,10 +237,7 @@ class Nearby:
         else:
             fi = np.empty(0, dtype=int)
         self._f_idx, self._f_cores, self._f_r = fi, space._fixed[fi], space._fixed_r[fi]
-        if space._ids:
-            mi = space._boxed(x0, y0, x1, y1, reach + space._rmax)
-        else:
-            mi = np.empty(0, dtype=int)
+        mi = space._boxed([bounds], reach + space._rmax)[1]
         self._m_ids = [space._ids[i] for i in mi]
         self._m_cores = space._cores[mi] if mi.size else np.empty(0, dtype=object)
         self._m_r = space._radii[mi] if mi.size else np.empty(0)

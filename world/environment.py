@@ -11,7 +11,8 @@ import math
 import os
 from dataclasses import dataclass
 
-from nanoasm.bodies import MAX_COORDINATE, TOUCH_EPS, Body, body_from_table, check_unique_ids, polygon_from_table
+from nanoasm.bodies import (MAX_COORDINATE, TOUCH_EPS, Body, body_from_table, check_at, check_unique_ids,
+                            polygon_from_table)
 from nanoasm.errors import InputError
 from nanoasm.fileio import dumps_json, read_document, write_atomic
 from nanoasm.instrument.protocol import MAX_SCANNER_RANGE
@@ -21,6 +22,11 @@ from .limits import MAX_HEIGHT
 
 FORMAT = "nanoasm.env/1"
 KINDS = ("particle", "rod", "wire")
+
+
+def _check_confidence(object_id: str, confidence: float) -> None:
+    if not 0.0 <= confidence <= 1.0:
+        raise ValueError(f"{object_id}: confidence must be in [0, 1]")
 
 
 @dataclass(frozen=True)
@@ -34,8 +40,7 @@ class EnvObject(Body):
         super().__post_init__()
         if self.kind not in KINDS:
             raise ValueError(f"{self.id}: kind must be one of {KINDS}")
-        if not 0.0 <= self.confidence <= 1.0:
-            raise ValueError(f"{self.id}: confidence must be in [0, 1]")
+        _check_confidence(self.id, self.confidence)
 
     def changed(self, *, at=None, confidence: float | None = None) -> EnvObject:
         """``dataclasses.replace`` with a new ``at`` or ``confidence``, those checked as
@@ -45,12 +50,10 @@ class EnvObject(Body):
         new = object.__new__(type(self))
         new.__dict__.update(self.__dict__)
         if at is not None:
-            if len(at) != 2 or not all(math.isfinite(v) for v in at):
-                raise ValueError(f"{self.id}: at must be two finite numbers")
+            check_at(self.id, at)
             new.__dict__["at"] = tuple(at)
         if confidence is not None:
-            if not 0.0 <= confidence <= 1.0:
-                raise ValueError(f"{self.id}: confidence must be in [0, 1]")
+            _check_confidence(self.id, confidence)
             new.__dict__["confidence"] = confidence
         return new
 
