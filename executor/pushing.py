@@ -125,45 +125,62 @@ def _beyond_range(ctx: RunContext, obj_id: str, error: InstrumentLimitError):
                         f"it stays where it is, an obstacle to the rest",), {"level": "error"})
 
 
-def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan_options: PlanOptions):
-    """One push with its scans; returns "ok", "failed" or "lost"."""
+def prepare(ctx: RunContext, op: Operation, plan_options: PlanOptions, *, trust: bool = True):
+    """Everything before a push in tapping mode: drift references, and its object located
+    (or, with ``trust``, taken from its last after-scan: :func:`_fresh`). Returns None, or
+    "lost" (not found)."""
+    obj_id = op.object
+    if not ctx.options.strategy.scans:
+        return None
+    start = ctx.belief[obj_id]
+    yield from keep_track(ctx)
+    yield from take_reference(ctx, start.at, obj_id)
+    yield from keep_track(ctx)
+    fresh = trust and (yield from _fresh(ctx, obj_id))
+    if fresh:                   # one line checks the after-scan still holds
+        heading = np.asarray(op.expect.at, float) - np.asarray(start.at, float)
+        why = yield from guard(ctx, obj_id, heading, plan_options.tip_radius)
+        if why is not None:
+            fresh = False
+            yield Msg("event", (f"{obj_id}: its after-scan not confirmed ({why}); scanning it",),
+                      {"level": "warn"})
+    if fresh:
+        return None
+    found = yield from _locate_start(ctx, obj_id)
+    if found is None:
+        _lost(ctx, obj_id)
+        yield Msg("event", (f"{obj_id} lost: not found within {ctx.options.lost_radius:.0f} nm",),
+                  {"level": "error"})
+        _quarantine(ctx, op, [start], plan_options, (yield Msg("clock")))
+        return "lost"
+    measured, cov, t = found
+    measured = ctx.to_layout(measured, t)       # with the drift as now estimated
+    ctx.observe(obj_id, measured.at, t, cov, angle=measured.angle)
+    if ctx.belief[obj_id].kind == "rod":
+        ctx.pivots.seen(ctx.belief[obj_id], cov)
+    return None
+
+
+def aim(ctx: RunContext, op: Operation, course: Course, plan_options: PlanOptions):
+    """The push ``op`` re-aimed at where its object is believed: (operation, start pose),
+    or None (a particle already where the push would leave it)."""
+    start = ctx.belief[op.object]
+    if not ctx.options.strategy.scans:
+        return op, start
+    if start.kind == "rod":
+        at, angle = course.starts.get(op.id, (start.at, start.angle))
+        expected = Body(op.object, "rod", at, start.diameter, angle, start.length)
+        return rod_push(op, expected, start), start
+    op = particle_push(op, start.at, start.radius, plan_options.tip_radius, plan_options.lead)
+    return None if op is None else (op, start)
+
+
+def press(ctx: RunContext, op: Operation, start, course: Course, lever: Cantilever, plan_options: PlanOptions):
+    """The push itself, in contact mode, its signals watched: (verdict, operation as
+    the model now expects it), or "ok" (a particle already there) or "failed" (out of
+    the scanner's range)."""
     obj_id = op.object
     scans = ctx.options.strategy.scans
-    start = ctx.belief[obj_id]
-    if scans:
-        yield from keep_track(ctx)
-        yield from take_reference(ctx, start.at, obj_id)
-        yield from keep_track(ctx)
-        fresh = yield from _fresh(ctx, obj_id)
-        if fresh:                   # one line checks the after-scan still holds
-            heading = np.asarray(op.expect.at, float) - np.asarray(start.at, float)
-            why = yield from guard(ctx, obj_id, heading, plan_options.tip_radius)
-            if why is not None:
-                fresh = False
-                yield Msg("event", (f"{obj_id}: its after-scan not confirmed ({why}); scanning it",),
-                          {"level": "warn"})
-        if not fresh:
-            found = yield from _locate_start(ctx, obj_id)
-            if found is None:
-                _lost(ctx, obj_id)
-                yield Msg("event", (f"{obj_id} lost: not found within {ctx.options.lost_radius:.0f} nm",),
-                          {"level": "error"})
-                _quarantine(ctx, op, [start], plan_options, (yield Msg("clock")))
-                return "lost"
-            measured, cov, t = found
-            measured = ctx.to_layout(measured, t)       # with the drift as now estimated
-            ctx.observe(obj_id, measured.at, t, cov, angle=measured.angle)
-            if ctx.belief[obj_id].kind == "rod":
-                ctx.pivots.seen(ctx.belief[obj_id], cov)
-        start = ctx.belief[obj_id]
-        if start.kind == "rod":
-            at, angle = course.starts.get(op.id, (start.at, start.angle))
-            expected = Body(obj_id, "rod", at, start.diameter, angle, start.length)
-            op = rod_push(op, expected, start)
-        else:
-            op = particle_push(op, start.at, start.radius, plan_options.tip_radius, plan_options.lead)
-            if op is None:
-                return "ok"
     # pressed to keep the tip down on this object, harder again for each slip over it
     preload = course.preload.get(obj_id, 1.0) * _load_factor(ctx, start, op, lever, plan_options.tip_radius)
     try:
@@ -195,7 +212,14 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
             # 207 slips; counted, it and one reference the slipped particle shoved made two
             # in a row; 28 relocalisations of 250 s, most to a window 12-34 nm off)
             yield from suspect_drift(ctx, obj_id, op.expect.at, count=False)
-    if scans:
+    return verdict, op
+
+
+def conclude(ctx: RunContext, op: Operation, start, verdict: Verdict, course: Course, plan_options: PlanOptions):
+    """After the push, in tapping mode: where did the object go (the scan after it), and
+    the push's record. Returns "ok", "failed" or "lost"."""
+    obj_id, ledger = op.object, ctx.ledger
+    if ctx.options.strategy.scans:
         after = yield from scan_after(ctx, op, start)
         if after is None:
             yield from suspect_drift(ctx, obj_id, op.expect.at)
@@ -229,3 +253,17 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
         doc["pivot"] = ctx.pivots.rods[obj_id].to_dict()
     yield Msg("emit", ("push", doc))
     return "failed" if verdict.failed else "ok"
+
+
+def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan_options: PlanOptions):
+    """One push with its scans; returns "ok", "failed" or "lost"."""
+    if (yield from prepare(ctx, op, plan_options)) == "lost":
+        return "lost"
+    aimed = aim(ctx, op, course, plan_options)
+    if aimed is None:
+        return "ok"
+    pressed = yield from press(ctx, *aimed, course, lever, plan_options)
+    if isinstance(pressed, str):
+        return pressed
+    verdict, op = pressed
+    return (yield from conclude(ctx, op, aimed[1], verdict, course, plan_options))

@@ -137,6 +137,10 @@ class ExecOptions:
         scans first. At 60 s the rods family took 14 % less instrument time after the full
         scan at equal fill, but a drift jump between two pushes of one object then costs a
         push made from the stale position (``bench/RESULTS.md``).
+    contact_batch : int
+        Pushes of different particles made in one contact phase, each located before
+        and scanned after all of them (:mod:`.batching`): two mode switches for the group
+        instead of two a push. 1, the default: each push scanned after before the next.
     push_speed : float or None
         Tip speed while pushing, nm/s (None: the scanner's limit).
     chunk : int
@@ -202,6 +206,8 @@ class ExecOptions:
                             "(rods), or the seed's pattern only (seed)", choices=("predicted", "rods", "seed"))
     trust_after_scan: float = param(0.0, "s", "age of an after-scan a push may start from without a scan "
                                     "before (0: always scan first)", nonnegative=True)
+    contact_batch: int = param(1, "-", "pushes of different particles made in one contact phase, scanned "
+                               "after all of them (1: each scanned after before the next)", lo=1, hi=64)
     push_speed: float | None = param(200.0, "nm/s", "tip speed while pushing (None: the scanner's limit)",
                                      optional=True, positive=True, lo=MIN_PUSH_SPEED)
     chunk: int = param(4096, "-", "DAC samples per streamed chunk", lo=16)
