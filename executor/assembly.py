@@ -16,7 +16,6 @@ and mapped into its frame (``_register``); the first plan carries the transform.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Generator
 from dataclasses import replace
@@ -31,7 +30,6 @@ from nanoasm.world.cantilever import SEED_LEVER, Cantilever
 from nanoasm.world.environment import Environment
 from nanoasm.world.identify import identify
 
-from . import course as courses
 from .baselines import BaselineMaps
 from .belief import Belief
 from .context import RunContext
@@ -42,6 +40,7 @@ from .drift_steps import unskewed_obstacles
 from .engine import Msg
 from .estimators import estimator_for
 from .motion_steps import travel_to
+from .after_push import correct, review
 from .batching import push_together, together
 from .pushing import push
 from .landmarks import Landmarks, moved_area
@@ -237,65 +236,19 @@ class Assembly:
             done += n
             why = None
             for op, outcome in zip(group, outcomes):
-                reason = yield from self._review(op, outcome, ops, i)
+                reason = yield from review(self, op, outcome, ops, i)
                 why = why or reason
             if why is not None:
                 ops, i, done = (yield from self.replan(done, why)), 0, 0
             elif self.strategy.scans:
                 for op in group:
                     if op.target is not None and all(p.object != op.object for p in ops[i:]):
-                        self._correct(op, ops, i, corrections)
+                        correct(self, op, ops, i, corrections)
             mark = self._count_execute(mark)        # the checkpoint holds the compute so far
             t_now = yield Msg("clock")
             yield Msg("checkpoint", (checkpoint(self, ops[i:], done, corrections, t_now),))
         self._count_execute(mark)
         return done
-
-    def _review(self, op: Operation, outcome: str, ops: list[Operation], i: int):
-        """After the push of ``op`` (``outcome``; ``ops[i:]`` what remains): an object whose
-        pushes fail, or leave it far off course, again and again is given up on. Returns why
-        the rest must be planned again, or None."""
-        ctx, opts, ledger = self.ctx, self.options, self.ctx.ledger
-        o = ctx.belief[op.object]
-        lost = outcome == "lost"
-        off, limit = 0.0, math.inf
-        if self.strategy.scans:
-            off = math.inf if lost else math.dist(o.at, op.expect.at)
-            # a rod's pushes scatter more (pivot, path): re-aiming absorbs up to L/4
-            limit = max(opts.replan_after, o.length / 4) if o.kind == "rod" else opts.replan_after
-        # an object whose pushes fail, or leave it far off course, again and again
-        # (stuck, or against something nobody sees) is not pushed for ever; a rod's
-        # course is replanned as a matter of course (its pushes scatter), so for a rod
-        # only failed pushes count
-        astray_push = outcome == "ok" and off > limit and o.kind != "rod"
-        if (outcome == "failed" or astray_push) and ledger.trouble(op.object, opts.max_failures):
-            yield Msg("event", (f"gave up on {op.object} after {ledger.troubles[op.object]} pushes "
-                                f"failed or went astray: it stays where it is, an obstacle "
-                                f"to the rest",), {"level": "warn"})
-        if not self.strategy.scans:
-            return None
-        astray = o.kind == "rod" and not lost and not courses.course_clear(   # next poses clear?
-            o, self.course.starts, ops[i:], [b for b in self.ctx.environment().objects if b.id != o.id],
-            self.plan_options.tip_radius)
-        moved, ctx.corrected = ctx.corrected, False     # by a relocalisation
-        if lost or (self.strategy.replans and (outcome == "failed" or off > limit or astray or moved)):
-            why = ("lost" if lost else f"{off:.0f} nm off course"
-                   + (", its course now too close to a neighbour" if astray else "")
-                   + (", objects moved by a relocalisation" if moved else ""))
-            return f"{op.object} {outcome} ({why})"
-        return None
-
-    def _correct(self, op: Operation, ops: list[Operation], i: int, corrections: dict[str, int]) -> None:
-        """The last push of ``op``'s object left it short of its slot: correction pushes
-        (at most ``max_corrections`` an object) put in at ``ops[i]``."""
-        ctx = self.ctx
-        extra = courses.correction(self.layout, ctx.belief, op.target, op.object, corrections,
-                                   self.options.max_corrections, self.plan_options, max(p.id for p in ops) + 1)
-        if extra is not None:
-            ctx.ledger.counts["replans"] += 1
-        if extra:
-            ops[i:i] = extra
-            self.course.follow(ctx.environment(), extra, extend=True)
 
     def _count_execute(self, mark: tuple[float, float]) -> tuple[float, float]:
         """Add the wall time since ``mark`` (``perf_counter()`` and the plan stage's seconds

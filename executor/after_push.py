@@ -1,0 +1,60 @@
+"""What follows a push in the run's loop (:meth:`.assembly.Assembly._pushes`): whether its
+object is given up on, whether the rest must be planned again, and correction pushes for an
+object its last push left short of its slot. ``asm``: the :class:`~.assembly.Assembly`."""
+
+from __future__ import annotations
+
+import math
+
+from nanoasm.planner import Operation
+
+from . import course as courses
+from .engine import Msg
+
+
+def review(asm, op: Operation, outcome: str, ops: list[Operation], i: int):
+    """After the push of ``op`` (``outcome``; ``ops[i:]`` what remains): an object whose
+    pushes fail, or leave it far off course, again and again is given up on. Returns why
+    the rest must be planned again, or None."""
+    ctx, opts, ledger = asm.ctx, asm.options, asm.ctx.ledger
+    o = ctx.belief[op.object]
+    lost = outcome == "lost"
+    off, limit = 0.0, math.inf
+    if asm.strategy.scans:
+        off = math.inf if lost else math.dist(o.at, op.expect.at)
+        # a rod's pushes scatter more (pivot, path): re-aiming absorbs up to L/4
+        limit = max(opts.replan_after, o.length / 4) if o.kind == "rod" else opts.replan_after
+    # an object whose pushes fail, or leave it far off course, again and again
+    # (stuck, or against something nobody sees) is not pushed for ever; a rod's
+    # course is replanned as a matter of course (its pushes scatter), so for a rod
+    # only failed pushes count
+    astray_push = outcome == "ok" and off > limit and o.kind != "rod"
+    if (outcome == "failed" or astray_push) and ledger.trouble(op.object, opts.max_failures):
+        yield Msg("event", (f"gave up on {op.object} after {ledger.troubles[op.object]} pushes "
+                            f"failed or went astray: it stays where it is, an obstacle "
+                            f"to the rest",), {"level": "warn"})
+    if not asm.strategy.scans:
+        return None
+    astray = o.kind == "rod" and not lost and not courses.course_clear(   # next poses clear?
+        o, asm.course.starts, ops[i:], [b for b in asm.ctx.environment().objects if b.id != o.id],
+        asm.plan_options.tip_radius)
+    moved, ctx.corrected = ctx.corrected, False     # by a relocalisation
+    if lost or (asm.strategy.replans and (outcome == "failed" or off > limit or astray or moved)):
+        why = ("lost" if lost else f"{off:.0f} nm off course"
+               + (", its course now too close to a neighbour" if astray else "")
+               + (", objects moved by a relocalisation" if moved else ""))
+        return f"{op.object} {outcome} ({why})"
+    return None
+
+
+def correct(asm, op: Operation, ops: list[Operation], i: int, corrections: dict[str, int]) -> None:
+    """The last push of ``op``'s object left it short of its slot: correction pushes
+    (at most ``max_corrections`` an object) put in at ``ops[i]``."""
+    ctx = asm.ctx
+    extra = courses.correction(asm.layout, ctx.belief, op.target, op.object, corrections,
+                               asm.options.max_corrections, asm.plan_options, max(p.id for p in ops) + 1)
+    if extra is not None:
+        ctx.ledger.counts["replans"] += 1
+    if extra:
+        ops[i:i] = extra
+        asm.course.follow(ctx.environment(), extra, extend=True)
