@@ -36,8 +36,6 @@ A push never starts from its last after-scan without a scan in a group (``trust_
 from __future__ import annotations
 
 import inspect
-from dataclasses import replace
-
 import numpy as np
 import shapely
 
@@ -129,8 +127,7 @@ class _Revisions:
 def _follow(ctx: RunContext, obj_id: str, shift: np.ndarray) -> None:
     """``obj_id``'s believed position moved back by the estimate's ``shift`` since its scan."""
     if np.any(shift != 0.0) and obj_id not in ctx.belief.lost:
-        o = ctx.belief[obj_id]
-        ctx.belief.objects[obj_id] = replace(o, at=(float(o.at[0] - shift[0]), float(o.at[1] - shift[1])))
+        ctx.belief.reframe(obj_id, shift)
 
 
 def push_together(ctx: RunContext, group: list[Operation], course, lever, plan_options: PlanOptions):

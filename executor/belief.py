@@ -113,6 +113,13 @@ class Belief:
         self.seen[object_id] = Seen(t, np.asarray(cov, float))
         self.touched.discard(object_id)
 
+    def reframe(self, object_id: str, shift) -> None:
+        """The drift estimate its position was put into the layout frame by has moved by
+        ``shift`` (nm, new less old offset): the same sighting, put there by the new one."""
+        o = self.objects[object_id]
+        at = np.asarray(o.at, float) - shift
+        self.objects[object_id] = replace(o, at=(float(at[0]), float(at[1])))
+
     def expect(self, object_id: str, at, angle: float | None) -> None:
         """The object was pushed: its pose is now the push model's prediction."""
         o = self.objects[object_id]

@@ -227,8 +227,6 @@ def _correct_beliefs(ctx: RunContext, shift: np.ndarray, since: float | None) ->
         return
     for oid, seen in ctx.belief.seen.items():
         if seen.t >= since and oid not in ctx.belief.lost:
-            o = ctx.belief[oid]
-            at = np.asarray(o.at, float) - shift
-            ctx.belief.objects[oid] = replace(o, at=(float(at[0]), float(at[1])))
+            ctx.belief.reframe(oid, shift)
             ctx.corrected = True
 
