@@ -149,13 +149,13 @@ def apex_cov(ctx: RunContext, apex: Apex) -> np.ndarray:
 def image_check(ctx: RunContext, centre, diameter: float, reach: float, label: str):
     """Scan a small image about ``centre`` (layout frame) and find the particle apexes in
     it (plan stub). ``reach``: how far (nm) the particle may lie from ``centre``. The
-    image is a drift-compensated raster of local-scan lines (:func:`.scan_steps.raster`).
+    image is a drift-compensated raster of local-scan lines (:func:`.scan_images.raster`).
 
     Returns (apexes as (Apex, position in the layout frame, time)) sorted by distance
     from ``centre``, and the image's pixels per side), or None where ``reach`` exceeds
     :data:`MAX_REACH` diameters or the window does not fit in the scanner's range.
     """
-    from .scan_steps import raster             # scan_steps looks with these images too
+    from .scan_images import raster            # scan_steps looks with these images too
 
     if reach > MAX_REACH * diameter:
         return None

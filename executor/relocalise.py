@@ -30,7 +30,7 @@ from .context import RunContext
 from .engine import Msg
 from .jump_recheck import recheck
 from .registration import register
-from .scan_steps import scan_window
+from .scan_images import scan_window
 
 #: Pixels within this distance (nm) beyond an object's footprint are masked when it moved.
 MASK_MARGIN = 40.0

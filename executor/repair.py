@@ -45,7 +45,8 @@ from .edge_slots import edge_line, edge_pushes, edge_slots
 from .engine import Msg
 from .progress_docs import PROGRESS, ProgressDoc
 from .relocalise import keep_track
-from .scan_steps import locate, scan_window
+from .scan_images import scan_window
+from .scan_steps import locate
 from .summary import summary
 from .verdict import check_again
 

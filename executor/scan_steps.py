@@ -22,7 +22,7 @@ from .association import Candidate, associate, sighting
 from .progress_docs import PROGRESS, ProgressDoc
 from .apex_check import CROWDED, ROUND, apex_cov, image_check
 from .local_scan import particle_after, particle_after_predicted, particle_before, rod_after, rod_before
-from .scan_lines import LocalScanResult, ScanLine, make_line, measure_line
+from .scan_lines import LocalScanResult, make_line, measure_line
 from .lost_search import find_lost_particle
 from .rod_predicted import rod_after_predicted
 from .motion_steps import approach
@@ -147,46 +147,6 @@ def line_doc(ctx: RunContext, a, b, heights, t: float) -> dict:
 DIRECTIONS = tuple(22.5 * k for k in range(8))
 
 
-def scan_window(ctx: RunContext, pixels: int, region, what: str):
-    """A raster image of ``region`` (scanner frame: x0, y0, x1, y1) of ``pixels`` lines
-    of ``pixels`` (plan stub), counted as a local scan and reported as ``what``; returns
-    the image and the time it ended."""
-    t0 = yield Msg("clock")
-    scan = yield Msg("full_scan", (pixels, tuple(float(v) for v in region)))
-    t1 = yield Msg("clock")
-    ctx.ledger.times["local_scan"] += t1 - t0
-    ctx.ledger.counts["local_scans"] += 1
-    yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"{what}, {pixels} x {pixels} px, {t1 - t0:.1f} s")))
-    return scan, t1
-
-
-def raster(ctx: RunContext, corner, pixels: int, pixel: float, what: str):
-    """A drift-compensated image (plan stub): ``pixels`` scan lines of ``pixels`` samples
-    ``pixel`` nm apart, its lower-left corner at ``corner`` (scanner frame, now), every
-    other line scanned back the other way. Each line is a local-scan line, placed where
-    the drift estimate predicts its row when it is scanned (:func:`scan_line`), so creep
-    right after a travel neither draws the content out nor carries it past the rows (as
-    fast as the slow scan on ``scale300``, where a raster of the instrument's own showed
-    no particle); and a line of 21 samples costs a fifth of a full-scan line.
-
-    Returns the heights (rows from the bottom, nm), the image's lower-left corner in the
-    layout frame and the time its content is of, and counts one local scan, ``what``."""
-    x0, y0 = (float(v) for v in corner)
-    xa, xb = x0 + 0.5 * pixel, x0 + (pixels - 0.5) * pixel
-
-    def pattern():
-        rows = []
-        for r in range(pixels):
-            y = y0 + (r + 0.5) * pixel
-            ends = ((xa, y), (xb, y)) if r % 2 == 0 else ((xb, y), (xa, y))
-            profile = np.asarray((yield ScanLine(*ends, pixels, "image")), float)
-            rows.append(profile if r % 2 == 0 else profile[::-1])
-        return np.array(rows)
-
-    heights = yield from run_pattern(ctx, pattern(), what)
-    return heights, np.array([x0, y0]) - ctx.offset(ctx.scan_ref), ctx.scan_ref
-
-
 def clear_direction(ctx: RunContext, at, half: float, exclude=()) -> np.ndarray:
     """The direction of a particle's first scan line through ``at`` (layout frame) whose
     cross (that line and the perpendicular one, ``half`` nm to each side) stays farthest
@@ -242,9 +202,10 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = 
         direction = clear_direction(ctx, ctx.position(obj_id), half, exclude={obj_id})
         pattern = particle_before(at, o.diameter, r_max, direction=direction, options=ctx.scan_opts)
     res = yield from run_pattern(ctx, pattern)
+    t_seen = _seen_time(ctx, t)
     gate = r_max + o.radius + ctx.scan_opts.resolved(o.diameter).margin     # as far as its lines reach
-    if res.found and not (yield from identify(ctx, obj_id, res, np.asarray(res.centre, float) - off, gate,
-                                              resolve=resolve)):
+    if res.found and not (yield from identify(ctx, obj_id, res, np.asarray(res.centre, float) - ctx.offset(t_seen),
+                                              gate, resolve=resolve)):
         res = replace(res, found=False)
     if not res.found and o.kind != "rod" and any(ln.edges.reason in CROWDED for ln in res.lines):
         seen = yield from _locate_by_image(ctx, obj_id, r_max, gate, resolve)
@@ -260,12 +221,24 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = 
         if res.found and o.kind == "rod":
             res = yield from run_pattern(ctx, rod_before(res.centre, o.angle, o.length, o.diameter,
                                                          2 * o.diameter, measure_angle=True, options=ctx.scan_opts))
-        if not res.found or not (yield from identify(ctx, obj_id, res, np.asarray(res.centre, float) - off,
+        t_seen = _seen_time(ctx, t)
+        if not res.found or not (yield from identify(ctx, obj_id, res,
+                                                     np.asarray(res.centre, float) - ctx.offset(t_seen),
                                                      math.sqrt(2.0) * ctx.options.lost_radius, resolve=resolve)):
             return None
-    t = ctx.scan_ref if ctx.scan_ref is not None else (yield Msg("clock"))
     cov = res.cov if res.cov is not None else np.eye(2) * DEFAULT_COV
-    return _pose(o, np.asarray(res.centre, float), res.angle), np.asarray(cov, float), t, res
+    return _pose(o, np.asarray(res.centre, float), res.angle), np.asarray(cov, float), t_seen, res
+
+
+def _seen_time(ctx: RunContext, t: float) -> float:
+    """When the sample lay as the pattern just run saw it: its first line (``ctx.scan_ref``;
+    ``t`` if it ran none). Its found centre is converted with the offset of then, taken
+    at once: resolving an ambiguous sighting scans other objects, which moves
+    ``ctx.scan_ref`` on. Not the offset of when the search began: a widening search starts
+    seconds after the scan that missed, while creep after the travel moved the sample
+    (wide seed 7: 28 nm in 3 s, and the sighting of a neighbour, 1 nm from where it was
+    believed, read 39 nm from it, was taken for the object looked for)."""
+    return ctx.scan_ref if ctx.scan_ref is not None else t
 
 
 def _locate_by_image(ctx: RunContext, obj_id: str, r_max: float, gate: float, resolve: bool):

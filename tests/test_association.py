@@ -306,3 +306,84 @@ def test_an_unassigned_slot_found_filled_names_the_particle_in_it(case):
         assert any(e.startswith("slot s1: filled by a") for e in events), events
     else:
         assert v1.object is None
+
+
+# -- a sighting is placed with the drift of when it was scanned ------------------------------
+
+class _Drifting(NoDrift):
+    """The drift known exactly: the sample moves by ``v`` nm/s in the scanner's frame."""
+
+    def __init__(self, v):
+        super().__init__((0.0, 0.0), 0.0)
+        self.v = np.asarray(v, float)
+
+    def offset(self, t: float) -> np.ndarray:
+        return self.origin + self.v * t
+
+
+def _drifting(truth, believed, options, step, v=(10.0, 0.0)):
+    """As :func:`_run`, on a sample drifting at ``v`` nm/s that the estimate knows."""
+    from dataclasses import replace as dreplace
+
+    from nanoasm.world.params import DriftParams
+    from simkit import EXACT
+
+    sim = world(truth, params=dreplace(EXACT, drift=DriftParams(velocity=v, random_walk=0.0)))
+    objects = tuple(EnvObject(k, "particle", (x, y), d) for k, (x, y, d) in believed.items())
+    env = Environment((4000.0, 4000.0), objects, ())
+    ctx = RunContext(sim.config, options, _Drifting(v), Belief(env, 0.0), References())
+    events: list[str] = []
+    engine = RunEngine(sim, [lambda topic, doc: events.append(doc.text) if topic == EVENT else None])
+    return engine.run(step(ctx)), ctx, events
+
+
+def test_a_widening_search_places_its_sighting_with_the_drift_of_its_own_scan():
+    # a is gone; the widening search about where it was believed finds b, believed to
+    # within a nm. The search runs seconds after the scan that missed (and a 4.7 um
+    # travel) while the sample drifts at 10 nm/s: placed with the offset of when the
+    # locate began, b's sighting read 16 nm from b, beyond b's gate, and was taken for a
+    found, ctx, events = _drifting([particle((3300, 3600), d=90.0, id="b")],
+                                   {"a": (3000.0, 3600.0, 90.0), "b": (3300.0, 3600.0, 90.0)},
+                                   ExecOptions(strategy="local-scan", r_max=10.0, lost_radius=600.0),
+                                   lambda ctx: locate(ctx, "a"))
+    assert any("widening search" in e for e in events)
+    assert found is None, events
+    assert any("what was found is b" in e or "is b, not a" in e for e in events), events
+
+
+def test_a_sighting_told_apart_from_a_neighbour_keeps_the_time_of_its_own_scan():
+    # a's scan finds a where b's gate reaches too: b is scanned to tell them apart. What
+    # locate returns is a's scan, in the scanner's frame of its first line; the time it
+    # gives with it must be that one, not the later one of b's scan (10 nm/s apart)
+    truth = [particle((3000, 3600), d=90.0, id="a"), particle((3000, 3730), d=90.0, id="b")]
+    found, ctx, events = _drifting(truth, {"a": (3000.0, 3600.0, 90.0), "b": (3000.0, 3730.0, 90.0)},
+                                   ExecOptions(strategy="local-scan", r_max=150.0),
+                                   lambda ctx: locate(ctx, "a", widen=False))
+    assert any("told apart" in e for e in events), events
+    assert math.dist(ctx.to_layout(found[0], found[2]).at, (3000.0, 3600.0)) < 3.0
+
+
+def test_an_object_the_tip_slipped_off_is_looked_for_where_it_lay_before_the_push():
+    # a 2.5 um push of a that the tip slipped off at once; c lies 300 nm beyond the push's
+    # end. The scan after finds c about the end and tells it apart; a is then found where
+    # it lay, not searched for about the end (2.5 um from it, beyond the widening search)
+    from nanoasm.executor.course import Course
+    from nanoasm.executor.monitor import Verdict
+    from nanoasm.executor.pushing import conclude
+    from nanoasm.planner.plan import Expect, Operation
+    from nanoasm.planner.options import PlanOptions
+
+    truth = [particle((1000, 1000), d=90.0, id="a"), particle((1000, 3800), d=90.0, id="c")]
+    op = Operation(0, "a", "s1", ((1000.0, 900.0), (1000.0, 3455.0)), Expect((1000.0, 3500.0)))
+    start = Body("a", "particle", (1000.0, 1000.0), 90.0)
+    course = Course()
+
+    def step(ctx):
+        ctx.belief.expect("a", op.expect.at, None)        # as press() leaves it
+        return (yield from conclude(ctx, op, start, Verdict("slipped", None, 3.0), course, PlanOptions()))
+
+    status, ctx, events = _run(truth, {"a": (1000.0, 1000.0, 90.0), "c": (1000.0, 3800.0, 90.0)}, step)
+    assert status == "failed" and "a" not in ctx.belief.lost, events
+    assert math.dist(ctx.belief["a"].at, (1000.0, 1000.0)) < 5.0
+    assert not any("widening search" in e for e in events), events
+    assert course.preload["a"] > 1.0                       # pushed harder next time
