@@ -195,6 +195,10 @@ class Assembly:
         yield _phase("execute")
         t = yield Msg("clock")
         self.ctx.drift.resumed(t - float(state["t"]))
+        if state.get("checked") is not None:        # after the last check scans: their verdict stands
+            yield Msg("event", (f"resumed from the checkpoint after the check scans ({t - float(state['t']):.0f} s "
+                                f"later): the run's result as they left it",))
+            return (yield from self._result())
         yield Msg("event", (f"resumed from the checkpoint after push {self.ctx.ledger.counts['pushes']} "
                             f"({t - float(state['t']):.0f} s later): {len(ops)} push(es) remain",))
         return (yield from self._execute(ops, 0, done, corrections))
@@ -210,7 +214,11 @@ class Assembly:
             if not ops:
                 break
         t_now = yield Msg("clock")                     # the belief as the check scans left it
-        yield Msg("checkpoint", (checkpoint(self, [], done, corrections, t_now),))
+        yield Msg("checkpoint", (checkpoint(self, [], done, corrections, t_now, checked=self.slots),))
+        return (yield from self._result())
+
+    def _result(self) -> Procedure:
+        """The run's result (:func:`.summary.summary`), emitted and returned."""
         result = summary(self)
         yield Msg("emit", ("result", result.to_doc()))
         return result

@@ -24,18 +24,24 @@ from .landmarks import Landmarks
 from .ledger import RunLedger
 from .reference_choice import LineTiming
 from .references import References
+from .slot_verdict import SlotVerdict
 
 FORMAT = "nanoasm.checkpoint/1"
 
 
-def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str, int], t: float) -> dict:
+def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str, int], t: float,
+               checked=None) -> dict:
     """What :meth:`Assembly.resume` needs to go on after ``done`` operations of the
     current plan, ``remaining`` to run (JSON types, lossless), and the latest drift
     estimate (``drift``). The ledger's figures are at the top level (``counts``,
-    ``times``, ...), where a reader of a log finds them."""
+    ``times``, ...), where a reader of a log finds them. ``checked``: the slot verdicts
+    of the run's last check scans, given to the checkpoint after them, from which a
+    resumed run only reports (without them it scanned every slot again: six local scans
+    counted twice on the particle bowtie)."""
     ctx, rp = asm.ctx, asm.replanner
     plan, base = _plan_parts(rp.plan, rp.base)
-    return PartsDict({
+    last = {} if checked is None else {"checked": [v.to_dict() for v in checked]}
+    return PartsDict({**last,
         "format": FORMAT, "t": t, "saved_at": time.time(), "strategy": asm.strategy.value,
         "plan": plan, "base": base,
         "remaining": _remaining(remaining), "done": done, "corrections": dict(corrections),
@@ -97,4 +103,6 @@ def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]
     if st.get("line_timing"):
         asm.ctx.timing = LineTiming.from_state(st["line_timing"])
     asm.ctx.full_scan, asm.ctx.env_objects = st.get("full_scan"), asm.env.objects
+    if st.get("checked") is not None:
+        asm.slots = tuple(SlotVerdict(v["target"], v["object"], v["state"], v["error"]) for v in st["checked"])
     return remaining, int(st["done"]), {k: int(v) for k, v in st["corrections"].items()}

@@ -69,6 +69,22 @@ def test_a_run_resumed_from_a_checkpoint_ends_as_the_uninterrupted_run(strategy,
     assert json.dumps(sim.state_dict()) == json.dumps(sim2.state_dict())
 
 
+def test_a_run_resumed_after_its_check_scans_reports_them_without_scanning_again():
+    # the last checkpoint follows the check scans; resumed from it, the run scanned every
+    # slot again and counted those scans twice (39 local scans where the run made 33)
+    n = _run_and_keep(10_000)[3]["n"]
+    layout, sim, summary, kept = _run_and_keep(n)
+    assert kept["state"]["remaining"] == [] and kept["state"]["checked"]
+    sim2 = SimulatedAFM.from_state(kept["scene"], json.loads(kept["sim"]))
+    events: list[str] = []
+    resumed = RunEngine(sim2, [lambda t, d: events.append(d.text) if t == "event" else None]).run(
+        Assembly(layout, ExecOptions()).resume(sim2.config, kept["state"]))
+    assert resumed.counts == summary.counts and resumed.slots == summary.slots
+    assert resumed.assignment == summary.assignment
+    assert sim2.ledger() == sim.ledger()                          # nothing scanned, nothing moved
+    assert any("after the check scans" in e for e in events) and not any("check scans of" in e for e in events)
+
+
 def test_a_resume_after_a_pause_widens_the_search_and_still_finishes():
     """The instrument's clock restarted (a new process) and ten minutes passed: the
     shifted clock goes on, the filter's uncertainty has grown, the run ends normally."""
