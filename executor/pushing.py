@@ -200,7 +200,8 @@ def press(ctx: RunContext, op: Operation, start, course: Course, lever: Cantilev
     if scans and start.kind == "rod" and not verdict.failed:    # the model with this rod's pivot
         pose = ctx.pivots.pushed(obj_id, op.tip_path, plan_options.tip_radius)
         op = Operation(op.id, op.object, op.target, op.tip_path, Expect(pose.at, pose.angle), op.kind)
-    ctx.belief.expect(obj_id, op.expect.at, op.expect.angle)
+    if not verdict.failed:      # a push the tip lost leaves it where it was last seen (the last leg's start)
+        ctx.belief.expect(obj_id, op.expect.at, op.expect.angle)
     if verdict.failed:
         ledger.counts["failed_pushes"] += 1
         ledger.fail(obj_id, verdict.status)
@@ -223,7 +224,7 @@ def conclude(ctx: RunContext, op: Operation, start, verdict: Verdict, course: Co
         after = yield from scan_after(ctx, op, start)
         if after is None:
             yield from suspect_drift(ctx, obj_id, op.expect.at)
-            located = (yield from _where_it_was(ctx, op, start)) if verdict.failed else None
+            located = (yield from _where_it_was(ctx, op)) if verdict.failed else None
             if located is None:
                 located = yield from locate(ctx, obj_id)
             if located is None:
@@ -257,14 +258,14 @@ def conclude(ctx: RunContext, op: Operation, start, verdict: Verdict, course: Co
     return "failed" if verdict.failed else "ok"
 
 
-def _where_it_was(ctx: RunContext, op: Operation, start):
+def _where_it_was(ctx: RunContext, op: Operation):
     """An object the tip lost (slipped over, stuck, no contact) that the scan after did not
-    find is looked for where it lay before the push, then believed where the push meant
-    it to be again if it is not there (the widening search about that follows). The scan
-    after a long push looks about its end first and stops at what it finds there: on
-    wide seed 7 a neighbour 300 nm from the end of a 3.9 um push the tip had slipped off
-    at once, so the search went on about the end, 3.9 um from the particle."""
-    ctx.belief.expect(op.object, start.at, start.angle)
+    find is looked for where it was last seen (the push leaves the belief there: the push's
+    start, or the start of the leg that lost it), then believed where the push meant it to
+    be if it is not there (the widening search about that follows). The scan after a long
+    push looks about its end first and stops at what it finds there: on wide seed 7 a
+    neighbour 300 nm from the end of a 3.9 um push the tip had slipped off at once, so the
+    search went on about the end, 3.9 um from the particle."""
     located = yield from locate(ctx, op.object, widen=False)
     if located is None:
         ctx.belief.expect(op.object, op.expect.at, op.expect.angle)

@@ -18,7 +18,7 @@ from nanoasm.executor.association import Candidate, associate, size_ok
 from nanoasm.executor.belief import Belief
 from nanoasm.executor.context import RunContext
 from nanoasm.executor.documents import EVENT
-from nanoasm.executor.engine import RunEngine
+from nanoasm.executor.engine import Msg, RunEngine
 from nanoasm.executor.estimators import NoDrift
 from nanoasm.executor.jump_recheck import recheck
 from nanoasm.executor.references import References, swept_area
@@ -378,8 +378,7 @@ def test_an_object_the_tip_slipped_off_is_looked_for_where_it_lay_before_the_pus
     start = Body("a", "particle", (1000.0, 1000.0), 90.0)
     course = Course()
 
-    def step(ctx):
-        ctx.belief.expect("a", op.expect.at, None)        # as press() leaves it
+    def step(ctx):             # press() leaves a lost push's object where it was last seen
         return (yield from conclude(ctx, op, start, Verdict("slipped", None, 3.0), course, PlanOptions()))
 
     status, ctx, events = _run(truth, {"a": (1000.0, 1000.0, 90.0), "c": (1000.0, 3800.0, 90.0)}, step)
@@ -387,3 +386,32 @@ def test_an_object_the_tip_slipped_off_is_looked_for_where_it_lay_before_the_pus
     assert math.dist(ctx.belief["a"].at, (1000.0, 1000.0)) < 5.0
     assert not any("widening search" in e for e in events), events
     assert course.preload["a"] > 1.0                       # pushed harder next time
+
+
+def test_a_push_the_tip_lost_in_a_later_leg_leaves_its_object_where_that_leg_began(monkeypatch):
+    # a long push in legs: the first ones measured the particle on its way (the belief
+    # follows them), the third slipped. The object is believed where it was last seen,
+    # not where the push meant it to end nor where the push began
+    import nanoasm.executor.pushing as pushing
+    from nanoasm.executor.course import Course
+    from nanoasm.executor.monitor import Verdict
+    from nanoasm.planner.plan import Expect, Operation
+    from nanoasm.planner.options import PlanOptions
+
+    seen_at = (1000.0, 1800.0)
+
+    def legs(ctx, op, start, *args):
+        ctx.observe(op.object, seen_at, (yield Msg("clock")), np.eye(2) * 9.0)
+        return Verdict("slipped", None, 3.0), 3, op
+
+    def quiet(*args, **kwargs):
+        yield from ()
+
+    monkeypatch.setattr(pushing, "push_in_legs", legs)
+    monkeypatch.setattr(pushing, "suspect_drift", quiet)
+    monkeypatch.setattr(pushing, "_load_factor", lambda *args: 1.0)
+    op = Operation(0, "a", "s1", ((1000.0, 900.0), (1000.0, 3455.0)), Expect((1000.0, 3500.0)))
+    start = Body("a", "particle", (1000.0, 1000.0), 90.0)
+    _, ctx, _ = _run([particle((1000, 1000), d=90.0, id="a")], {"a": (1000.0, 1000.0, 90.0)},
+                     lambda ctx: pushing.press(ctx, op, start, Course(), None, PlanOptions()))
+    assert ctx.belief["a"].at == seen_at
