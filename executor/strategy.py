@@ -140,7 +140,7 @@ class ExecOptions:
     contact_batch : int
         Pushes of different particles made in one contact phase, each located before
         and scanned after all of them (:mod:`.batching`): two mode switches for the group
-        instead of two a push. 1, the default: each push scanned after before the next.
+        instead of two a push. 4 by default; 1: each push scanned after before the next.
     push_speed : float or None
         Tip speed while pushing, nm/s (None: the scanner's limit).
     chunk : int
@@ -206,7 +206,7 @@ class ExecOptions:
                             "(rods), or the seed's pattern only (seed)", choices=("predicted", "rods", "seed"))
     trust_after_scan: float = param(0.0, "s", "age of an after-scan a push may start from without a scan "
                                     "before (0: always scan first)", nonnegative=True)
-    contact_batch: int = param(1, "-", "pushes of different particles made in one contact phase, scanned "
+    contact_batch: int = param(4, "-", "pushes of different particles made in one contact phase, scanned "
                                "after all of them (1: each scanned after before the next)", lo=1, hi=64)
     push_speed: float | None = param(200.0, "nm/s", "tip speed while pushing (None: the scanner's limit)",
                                      optional=True, positive=True, lo=MIN_PUSH_SPEED)

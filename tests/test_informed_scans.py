@@ -175,12 +175,13 @@ def test_a_lines_time_beyond_its_learnt_cost_is_a_mode_switch():
 
 def test_the_report_counts_the_switch_back_to_tapping_as_a_mode_switch():
     """Two mode switches a push cycle (into contact, back to tapping) at the simulator's 2 s:
-    a rods-family run's mode switches are 4 s a push, and its local scans none of them."""
+    a rods-family run's mode switches are 4 s a push, and its local scans none of them
+    (each push alone: pushes made together share their switches, tests/test_batching.py)."""
     from nanoasm.dryrun import dry_run
     from nanoasm.world.families import family_case
 
     scene, layout = family_case("rods", 1, 0.3)
-    out = dry_run(scene, layout, seed=1, options=ExecOptions())
+    out = dry_run(scene, layout, seed=1, options=ExecOptions(contact_batch=1))
     t, n = out.report.instrument_time, out.report.counts.pushes
     switch = scene.params.timing.mode_switch
     assert t.mode_switch == pytest.approx(2 * switch * n, abs=switch)

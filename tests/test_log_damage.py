@@ -23,13 +23,13 @@ from nanoasm.simkeep import sim_state_path
 
 @pytest.fixture(scope="module")
 def stopped(tmp_path_factory):
-    """A dry-run killed after its fifth checkpoint (its log and kept world), and the
+    """A dry-run killed after its world was kept a third time (its log and kept world), and the
     chunks of its log."""
     folder = tmp_path_factory.mktemp("damage")
     _, layout = particle_bowtie()
     layout.save(folder / "particles.toml")
     log = folder / "run.mcap"
-    killed_after(["dry-run", example("bowtie_scene.toml"), "particles.toml", "--seed", "3", "--log", log], 5, folder)
+    killed_after(["dry-run", example("bowtie_scene.toml"), "particles.toml", "--seed", "3", "--log", log], 3, folder)
     return log, chunk_topics(log)
 
 

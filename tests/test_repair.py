@@ -168,12 +168,14 @@ def test_a_lost_objects_windows_follow_its_pushes_latest_first_and_skip_what_was
 
 def _allpushed_jump(seed: int, at: float):
     """allpushed with the drift-jump benchmark's 300 nm jump at ``at`` s (bench_drift_refs
-    at 900 s; the runs end at 850-1000 s since contact legs, so the tests take it earlier)."""
+    at 900 s; the runs end at 850-1000 s since contact legs, so the tests take it earlier).
+    Each push alone (``contact_batch=1``): the cases were timed on such runs, and pushes made
+    together change when each push runs."""
     scene, layout = family_case("allpushed", seed)
     change = replace(scene.params.drift_change, jump=300.0, jump_at=at)
     scene = replace(scene, params=replace(scene.params, drift_change=change))
     events = Events()
-    out = dry_run(scene, layout, options=ExecOptions(strategy="full"), subscribers=[events])
+    out = dry_run(scene, layout, options=ExecOptions(strategy="full", contact_batch=1), subscribers=[events])
     return out, layout, events
 
 
@@ -229,7 +231,8 @@ def test_no_repair_round_when_rounds_are_off():
     change = replace(scene.params.drift_change, jump=300.0, jump_at=700.0)
     scene = replace(scene, params=replace(scene.params, drift_change=change))
     events = Events()
-    out = dry_run(scene, layout, options=ExecOptions(strategy="full", repair_rounds=0), subscribers=[events])
+    out = dry_run(scene, layout, options=ExecOptions(strategy="full", repair_rounds=0, contact_batch=1),
+                  subscribers=[events])
     assert not any(t.startswith("repair round") for t in events.texts)
     assert len(out.truly_filled) == len(layout.targets) - 1 and not out.disagreements
 

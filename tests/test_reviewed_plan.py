@@ -63,8 +63,10 @@ def test_a_dry_run_executes_the_reviewed_plan(reviewed, tmp_path, capsys):
     # the plan's assignment (the report names the scene's objects, as the plan does), not
     # the run's own, which takes o2 into a slot
     assert rep.assignment == plan.assignment and LEFT_OUT not in {a.object for a in rep.assignment}
+    # the plan's pushes; pushes that cannot touch one another may be made together, in
+    # another order (contact_batch, executor/batching.py)
     order = list(dict.fromkeys(op.object for op in plan.operations))
-    assert rep.counts.replans == 0 and list(rep.pushed) == order
+    assert rep.counts.replans == 0 and sorted(rep.pushed) == sorted(order)
     assert rep.plan == str(reviewed) and json.loads(report.read_text())["plan"] == str(reviewed)
     assert [v.state for v in rep.slots] == ["filled"] * 4
     # the run log says so, and its first plan is the reviewed one, in the run's ids
