@@ -104,5 +104,5 @@ def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]
         asm.ctx.timing = LineTiming.from_state(st["line_timing"])
     asm.ctx.full_scan, asm.ctx.env_objects = st.get("full_scan"), asm.env.objects
     if st.get("checked") is not None:
-        asm.slots = tuple(SlotVerdict(v["target"], v["object"], v["state"], v["error"]) for v in st["checked"])
+        asm.slots = tuple(SlotVerdict(**v) for v in st["checked"])
     return remaining, int(st["done"]), {k: int(v) for k, v in st["corrections"].items()}

@@ -200,9 +200,9 @@ def press(ctx: RunContext, op: Operation, start, course: Course, lever: Cantilev
     if scans and start.kind == "rod" and not verdict.failed:    # the model with this rod's pivot
         pose = ctx.pivots.pushed(obj_id, op.tip_path, plan_options.tip_radius)
         op = Operation(op.id, op.object, op.target, op.tip_path, Expect(pose.at, pose.angle), op.kind)
-    if not verdict.failed:      # a push the tip lost leaves it where it was last seen (the last leg's start)
+    if not verdict.failed:
         ctx.belief.expect(obj_id, op.expect.at, op.expect.angle)
-    if verdict.failed:
+    else:                       # the tip lost it: believed where it was last seen (the last leg's start)
         ledger.counts["failed_pushes"] += 1
         ledger.fail(obj_id, verdict.status)
         yield Msg("event", (f"push of {obj_id} {verdict.status} (peak force {verdict.peak_force:.0f} nN)",),

@@ -1,7 +1,6 @@
 """Images made of local-scan lines or by the instrument's own raster: the window a
 relocalisation registers (:func:`scan_window`) and the small drift-compensated images
-that look at a crowded particle (:func:`raster`). Moved out of :mod:`.scan_steps`, whose
-lines and patterns they use."""
+that look at a crowded particle (:func:`raster`), made with :mod:`.scan_steps`'s lines."""
 
 from __future__ import annotations
 
@@ -31,7 +30,7 @@ def raster(ctx: RunContext, corner, pixels: int, pixel: float, what: str):
     """A drift-compensated image (plan stub): ``pixels`` scan lines of ``pixels`` samples
     ``pixel`` nm apart, its lower-left corner at ``corner`` (scanner frame, now), every
     other line scanned back the other way. Each line is a local-scan line, placed where
-    the drift estimate predicts its row when it is scanned (:func:`scan_line`), so creep
+    the drift estimate predicts its row when it is scanned (:func:`.scan_steps.scan_line`), so creep
     right after a travel neither draws the content out nor carries it past the rows (as
     fast as the slow scan on ``scale300``, where a raster of the instrument's own showed
     no particle); and a line of 21 samples costs a fifth of a full-scan line.

@@ -202,10 +202,9 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = 
         direction = clear_direction(ctx, ctx.position(obj_id), half, exclude={obj_id})
         pattern = particle_before(at, o.diameter, r_max, direction=direction, options=ctx.scan_opts)
     res = yield from run_pattern(ctx, pattern)
-    t_seen = _seen_time(ctx, t)
+    t_seen, seen_at = _seen(ctx, res, t)
     gate = r_max + o.radius + ctx.scan_opts.resolved(o.diameter).margin     # as far as its lines reach
-    if res.found and not (yield from identify(ctx, obj_id, res, np.asarray(res.centre, float) - ctx.offset(t_seen),
-                                              gate, resolve=resolve)):
+    if res.found and not (yield from identify(ctx, obj_id, res, seen_at, gate, resolve=resolve)):
         res = replace(res, found=False)
     if not res.found and o.kind != "rod" and any(ln.edges.reason in CROWDED for ln in res.lines):
         seen = yield from _locate_by_image(ctx, obj_id, r_max, gate, resolve)
@@ -221,24 +220,25 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = 
         if res.found and o.kind == "rod":
             res = yield from run_pattern(ctx, rod_before(res.centre, o.angle, o.length, o.diameter,
                                                          2 * o.diameter, measure_angle=True, options=ctx.scan_opts))
-        t_seen = _seen_time(ctx, t)
-        if not res.found or not (yield from identify(ctx, obj_id, res,
-                                                     np.asarray(res.centre, float) - ctx.offset(t_seen),
+        t_seen, seen_at = _seen(ctx, res, t)
+        if not res.found or not (yield from identify(ctx, obj_id, res, seen_at,
                                                      math.sqrt(2.0) * ctx.options.lost_radius, resolve=resolve)):
             return None
     cov = res.cov if res.cov is not None else np.eye(2) * DEFAULT_COV
     return _pose(o, np.asarray(res.centre, float), res.angle), np.asarray(cov, float), t_seen, res
 
 
-def _seen_time(ctx: RunContext, t: float) -> float:
-    """When the sample lay as the pattern just run saw it: its first line (``ctx.scan_ref``;
-    ``t`` if it ran none). Its found centre is converted with the offset of then, taken
-    at once: resolving an ambiguous sighting scans other objects, which moves
-    ``ctx.scan_ref`` on. Not the offset of when the search began: a widening search starts
-    seconds after the scan that missed, while creep after the travel moved the sample
-    (wide seed 7: 28 nm in 3 s, and the sighting of a neighbour, 1 nm from where it was
-    believed, read 39 nm from it, was taken for the object looked for)."""
-    return ctx.scan_ref if ctx.scan_ref is not None else t
+def _seen(ctx: RunContext, res, t: float):
+    """When the sample lay as the pattern just run saw it, its first line (``ctx.scan_ref``;
+    ``t`` if it ran none), and where (layout frame) it found ``res``'s centre (None if it
+    found none), with the offset of then, taken at once: resolving an ambiguous sighting
+    scans other objects, which moves ``ctx.scan_ref`` on. Not the offset of when the
+    search began: a widening search starts seconds after the scan that missed, while creep
+    after the travel moved the sample (wide seed 7: 28 nm in 3 s, and the sighting of a
+    neighbour, 1 nm from where it was believed, read 39 nm from it, was taken for the
+    object looked for)."""
+    t_seen = ctx.scan_ref if ctx.scan_ref is not None else t
+    return t_seen, (np.asarray(res.centre, float) - ctx.offset(t_seen) if res.found else None)
 
 
 def _locate_by_image(ctx: RunContext, obj_id: str, r_max: float, gate: float, resolve: bool):

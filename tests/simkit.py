@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from nanoasm.bodies import Body
 from nanoasm.instrument import ramp
+from nanoasm.executor.estimators import NoDrift
 from nanoasm.world.cantilever import tip_offset
 from nanoasm.world.params import CreepParams, PushParams, VdwParams, WorldParams
 from nanoasm.world.scene import Scene
@@ -18,6 +19,18 @@ EXACT = WorldParams(push=PushParams(pivot_scatter=0.0, path_scatter=0.0), vdw=Vd
 def world(objects, *, area=(4000.0, 4000.0), params: WorldParams = EXACT, seed: int = 1, obstacles=()):
     # the scene's origin at the scanner's: sample and scanner frames agree at t = 0
     return SimulatedAFM(Scene(area, tuple(objects), tuple(obstacles), params, seed), placement=(0.0, 0.0))
+
+
+class SteadyDrift(NoDrift):
+    """A world's own steady drift, known exactly: the sample moves by ``v`` nm/s in the
+    scanner's frame (offset = v t)."""
+
+    def __init__(self, v):
+        super().__init__((0.0, 0.0), 0.0)
+        self.v = np.asarray(v, float)
+
+    def offset(self, t: float) -> np.ndarray:
+        return self.origin + self.v * t
 
 
 def particle(at, d=50.0, id="p1") -> Body:

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from simkit import particle, world
+from simkit import SteadyDrift, particle, world
 
 from nanoasm.bodies import Body
 from nanoasm.executor.association import Candidate, associate, size_ok
@@ -310,17 +310,6 @@ def test_an_unassigned_slot_found_filled_names_the_particle_in_it(case):
 
 # -- a sighting is placed with the drift of when it was scanned ------------------------------
 
-class _Drifting(NoDrift):
-    """The drift known exactly: the sample moves by ``v`` nm/s in the scanner's frame."""
-
-    def __init__(self, v):
-        super().__init__((0.0, 0.0), 0.0)
-        self.v = np.asarray(v, float)
-
-    def offset(self, t: float) -> np.ndarray:
-        return self.origin + self.v * t
-
-
 def _drifting(truth, believed, options, step, v=(10.0, 0.0)):
     """As :func:`_run`, on a sample drifting at ``v`` nm/s that the estimate knows."""
     from dataclasses import replace as dreplace
@@ -331,7 +320,7 @@ def _drifting(truth, believed, options, step, v=(10.0, 0.0)):
     sim = world(truth, params=dreplace(EXACT, drift=DriftParams(velocity=v, random_walk=0.0)))
     objects = tuple(EnvObject(k, "particle", (x, y), d) for k, (x, y, d) in believed.items())
     env = Environment((4000.0, 4000.0), objects, ())
-    ctx = RunContext(sim.config, options, _Drifting(v), Belief(env, 0.0), References())
+    ctx = RunContext(sim.config, options, SteadyDrift(v), Belief(env, 0.0), References())
     events: list[str] = []
     engine = RunEngine(sim, [lambda topic, doc: events.append(doc.text) if topic == EVENT else None])
     return engine.run(step(ctx)), ctx, events

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from simkit import particle, rod, world
+from simkit import SteadyDrift, particle, rod, world
 from test_local_scan import angle_err, err, push_rod, scanner, sphere_profile
 
 from nanoasm.executor.belief import Belief
@@ -188,17 +188,6 @@ def test_the_report_counts_the_switch_back_to_tapping_as_a_mode_switch():
     assert t.full_scan + t.local_scan + t.push + t.travel + t.mode_switch == pytest.approx(t.total, abs=1e-6)
 
 
-class _Steady(NoDrift):
-    """The world's own steady drift, known exactly: offset = v t."""
-
-    def __init__(self, v):
-        super().__init__((0.0, 0.0), 0.0)
-        self.v = np.asarray(v, float)
-
-    def offset(self, t: float) -> np.ndarray:
-        return self.origin + self.v * t
-
-
 def test_a_line_after_a_push_is_read_in_the_frame_of_when_it_was_scanned_after_the_mode_switch():
     """The first line after a push waits 2 s for the switch back to tapping: a sample drifting
     8 nm/s across it moves 16 nm meanwhile. The line's coordinate, less the drift estimate's
@@ -213,7 +202,7 @@ def test_a_line_after_a_push_is_read_in_the_frame_of_when_it_was_scanned_after_t
     params = dc_replace(EXACT, drift=DriftParams(velocity=v, random_walk=0.0))
     sim = world([particle((2000.0, 2000.0), d=90.0)], params=params)
     push(sim, (500.0, 500.0), (700.0, 500.0))    # far away: the scanner is left in contact mode
-    ctx = RunContext(sim.config, ExecOptions(strategy="local-scan"), _Steady(v), Belief(
+    ctx = RunContext(sim.config, ExecOptions(strategy="local-scan"), SteadyDrift(v), Belief(
         Environment((4000.0, 4000.0), (EnvObject("p1", "particle", (2000.0, 2000.0), 90.0),), ()), 0.0),
         References())
     ctx.timing = LineTiming()
