@@ -23,6 +23,10 @@ as the references are scanned again after the full scan (the bootstrap).
 
     python bench/bench_drift_refs.py                      # 8 families x 10 seeds -> bench/RESULTS_drift_refs.md
     python bench/bench_drift_refs.py --families device --seeds 1-3 --out /tmp/x.md
+    python bench/bench_drift_refs.py --families '' --contact-batch 4,1 --out /tmp/jump.md   # both settings
+
+``--contact-batch`` runs every case with each ``ExecOptions.contact_batch`` it lists
+(default: the executor's).
 """
 
 from __future__ import annotations
@@ -60,17 +64,20 @@ def with_jump(scene, jump: float, after: float):
 def one_run(args: tuple) -> dict:
     """Dry-run one family and seed (``jump`` nm of drift jump ``after`` s after the full
     scan, :data:`JUMP_AFTER` if not given; 0 nm: none) with ``ExecOptions.trust_after_scan``
-    at ``trust`` s."""
+    at ``trust`` s and ``contact_batch`` ``batch`` (None if not given: the default)."""
     from nanoasm.dryrun import dry_run
     from nanoasm.executor.strategy import ExecOptions
     from nanoasm.world.families import family_case
 
-    name, seed, jump, trust, after = (*args, JUMP_AFTER)[:5]
+    name, seed, jump, trust, after, batch = (*args, JUMP_AFTER, None)[:6]
     scene, layout = family_case(name, seed)
     if jump:
         scene = with_jump(scene, jump, after)
     w0 = time.perf_counter()
-    out = dry_run(scene, layout, options=ExecOptions(strategy="full", trust_after_scan=trust))
+    options = ExecOptions(strategy="full", trust_after_scan=trust)
+    if batch is not None:
+        options = replace(options, contact_batch=batch)
+    out = dry_run(scene, layout, options=options)
     wall = time.perf_counter() - w0
     pts = out.drift
     after = pts[1:] if len(pts) > 1 else pts          # the first update is the bootstrap's
@@ -85,7 +92,7 @@ def one_run(args: tuple) -> dict:
     filled_p = [s for s in out.filled if s in particle]
     errs = [out.errors[s] for s in filled_p]
     return {
-        "family": name, "seed": seed, "jump": jump, "updates": len(pts),
+        "family": name, "seed": seed, "jump": jump, "updates": len(pts), "batch": options.contact_batch,
         "jump_at": scene.params.drift_change.jump_at if jump else math.nan,
         "max_sigma": max(sig) if sig else math.nan,
         "rms": math.sqrt(sum(e * e for e in err) / len(err)) if err else math.nan,
@@ -164,15 +171,15 @@ def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: fl
              "RMS of the filled; truly: slots an outside scorer finds filled by the nearest compatible true "
              "object; verdict: runs whose own slot verdict equals that truth.", "",
              "## Per family: medians (worst) over seeds", "",
-             "| family | runs | max σ nm | RMS nm | worst RMS | in 3σ | worst in 3σ | references | particle slots "
-             "| truly | particle RMS nm | all slots | pushes | verdict |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for fam in dict.fromkeys(r["family"] for r in rows):
-        rs = [r for r in rows if r["family"] == fam]
+             "| family | contact batch | runs | max σ nm | RMS nm | worst RMS | in 3σ | worst in 3σ | references "
+             "| particle slots | truly | particle RMS nm | all slots | pushes | verdict |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for fam, batch in dict.fromkeys((r["family"], r["batch"]) for r in rows):
+        rs = [r for r in rows if r["family"] == fam and r["batch"] == batch]
         ps = sum(r["particle_slots"] for r in rs)
         pf = sum(r["particle_filled"] for r in rs)
         lines.append(
-            f"| {fam} | {len(rs)} | {_fmt(_median(rs, 'max_sigma'))} ({_fmt(max(r['max_sigma'] for r in rs))}) "
+            f"| {fam} | {batch} | {len(rs)} | {_fmt(_median(rs, 'max_sigma'))} ({_fmt(max(r['max_sigma'] for r in rs))}) "
             f"| {_fmt(_median(rs, 'rms'))} | {_fmt(max(r['rms'] for r in rs))} "
             f"| {_fmt(_median(rs, 'within3'))} | {_fmt(min(r['within3'] for r in rs))} "
             f"| {_fmt(_median(rs, 'ref_share'))} ({_fmt(_median(rs, 'ref_boot_share'))}) "
@@ -181,18 +188,26 @@ def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: fl
             f"| {sum(r['agree'] for r in rs)}/{len(rs)} |")
     if jump_rows:
         lines += ["", f"## A 300 nm drift jump {jump_case[1]:g} s after the full scan ({jump_case[0]})", "",
-                  "| seed | jump at s | run ended s | particle slots | truly | particle RMS nm | RMS of estimate nm "
-                  "| relocalisation s | verdict agrees |",
-                  "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-        lines += [f"| {r['seed']} | {_fmt(r['jump_at'], 4)} | {_fmt(r['instrument_s'], 4)} "
+                  "| contact batch | seed | jump at s | run ended s | particle slots | truly | particle RMS nm "
+                  "| RMS of estimate nm | relocalisation s | verdict agrees |",
+                  "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+        for batch in dict.fromkeys(r["batch"] for r in jump_rows):
+            rs = [r for r in jump_rows if r["batch"] == batch]
+            lines.append(f"| {batch} | all {len(rs)} | | median {_fmt(_median(rs, 'instrument_s'), 4)} "
+                         f"| {sum(r['particle_filled'] for r in rs)}/{sum(r['particle_slots'] for r in rs)} "
+                         f"| {sum(r['particle_true'] for r in rs)} | {_fmt(_median(rs, 'particle_rms'))} "
+                         f"| {_fmt(_median(rs, 'rms'))} | {_fmt(_median(rs, 'relocalise_s'))} "
+                         f"| {sum(r['agree'] for r in rs)}/{len(rs)} |")
+        lines += [f"| {r['batch']} | {r['seed']} | {_fmt(r['jump_at'], 4)} | {_fmt(r['instrument_s'], 4)} "
                   f"| {r['particle_filled']}/{r['particle_slots']} | {r['particle_true']} "
                   f"| {_fmt(r['particle_rms'])} | {_fmt(r['rms'])} | {_fmt(r['relocalise_s'])} "
                   f"| {'yes' if r['agree'] else 'no'} |" for r in jump_rows]
     lines += ["", "## Every run", "",
-              "| family | seed | updates | max σ | RMS | max err | in 3σ | references | with bootstrap "
+              "| family | contact batch | seed | updates | max σ | RMS | max err | in 3σ | references | with bootstrap "
               "| particle | particle RMS | slots | pushes | instrument s | wall s |",
-              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    lines += [f"| {r['family']} | {r['seed']} | {r['updates']} | {_fmt(r['max_sigma'])} | {_fmt(r['rms'])} "
+              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
+              "| ---: |"]
+    lines += [f"| {r['family']} | {r['batch']} | {r['seed']} | {r['updates']} | {_fmt(r['max_sigma'])} | {_fmt(r['rms'])} "
               f"| {_fmt(r['max_err'])} | {_fmt(r['within3'])} | {_fmt(r['ref_share'])} | {_fmt(r['ref_boot_share'])} "
               f"| {r['particle_filled']}/{r['particle_slots']} | {_fmt(r['particle_rms'])} "
               f"| {r['filled']}/{r['slots']} | {r['pushes']} | {_fmt(r['instrument_s'], 4)} | {_fmt(r['wall_s'])} |"
@@ -209,11 +224,16 @@ def main(argv: list[str] | None = None) -> int:
                     help=f"s after the full scan's end at which the jump case's drift jumps (default {JUMP_AFTER:g})")
     ap.add_argument("--trust-after-scan", type=float, default=0.0,
                     help="ExecOptions.trust_after_scan of every run, s (default 0, the executor's)")
+    ap.add_argument("--contact-batch", default="",
+                    help="ExecOptions.contact_batch: every case with each of these (comma-separated; default "
+                         "the executor's)")
     a = ap.parse_args(argv)
     seeds = parse_seeds(a.seeds)
-    cases = [(f, s, 0.0, a.trust_after_scan) for f in a.families.split(",") if f for s in seeds]
-    jumps = ([(a.jump_family, s, 300.0, a.trust_after_scan, a.jump_after) for s in parse_seeds(a.jump_seeds)]
-             if a.jump_seeds else [])
+    batches = [int(b) for b in a.contact_batch.split(",") if b] or [None]
+    cases = [(f, s, 0.0, a.trust_after_scan, JUMP_AFTER, b) for b in batches for f in a.families.split(",") if f
+             for s in seeds]
+    jumps = ([(a.jump_family, s, 300.0, a.trust_after_scan, a.jump_after, b) for b in batches
+              for s in parse_seeds(a.jump_seeds)] if a.jump_seeds else [])
     todo = cases + jumps
     sweep_to_file(todo, one_run, a.workers, Path(a.out),
                   lambda done, secs: report([done[k] for k in range(len(cases)) if k in done],

@@ -43,7 +43,7 @@ def checkpoint(asm, remaining: list[Operation], done: int, corrections: dict[str
     last = {} if checked is None else {"checked": [v.to_dict() for v in checked]}
     return PartsDict({**last,
         "format": FORMAT, "t": t, "saved_at": time.time(), "strategy": asm.strategy.value,
-        "plan": plan, "base": base,
+        "contact_batch": asm.options.contact_batch, "plan": plan, "base": base,
         "remaining": _remaining(remaining), "done": done, "corrections": dict(corrections),
         "belief": ctx.belief.state_dict(), "estimator": ctx.drift.state_dict(),
         "references": ctx.refs.state_dict(), "course": asm.course.state_dict(),
@@ -74,6 +74,12 @@ def _remaining(remaining: list[Operation]) -> Parts:
     """``[o.to_dict() for o in remaining]``, each operation's dict the same kept part while
     the operation (frozen) stands."""
     return Parts(_OPERATIONS.parts(((id(o), o) for o in remaining), lambda o: o.to_dict()))
+
+
+def checkpoint_batch(st: dict) -> int | None:
+    """The ``ExecOptions.contact_batch`` the run of checkpoint state ``st`` pushed with, for
+    its resumption (None, the default, for a checkpoint written before it was kept)."""
+    return None if st.get("contact_batch") is None else int(st["contact_batch"])
 
 
 def restore(asm, config, st: dict) -> tuple[list[Operation], int, dict[str, int]]:

@@ -489,11 +489,22 @@ Region = Annotated[Optional[tuple[float, float, float, float]], typer.Option(
                                             "layout's origin.")]
 Pixels = Annotated[Optional[int], typer.Option("--pixels", help="Pixels a side of the full scan, 16-4096 "
                                                                 "(default: 10 nm a pixel).")]
+ContactBatch = Annotated[Optional[int], typer.Option("--contact-batch", help="Pushes of particles that cannot "
+                                                     "touch one another made in one contact phase, 1-64 (default 4; "
+                                                     "1: each push scanned after before the next). A resumed run "
+                                                     "keeps its log's.")]
 
 
-def _check_fresh(resume: Path | None, plan: Path | None, region, pixels: int | None) -> None:
-    """``--plan``, ``--region`` and ``--pixels`` shape how a run starts: refused with ``--resume``."""
-    for option, value in (("--plan", plan), ("--region", region), ("--pixels", pixels)):
+def _check_fresh(resume: Path | None, plan: Path | None, region, pixels: int | None,
+                 contact_batch: int | None = None) -> None:
+    """``--plan``, ``--region``, ``--pixels`` and ``--contact-batch`` shape how a run
+    starts: refused with ``--resume``; ``--contact-batch`` checked against its limits."""
+    if contact_batch is not None:
+        from nanoasm.executor.strategy import ExecOptions
+
+        _options(ExecOptions, contact_batch=contact_batch)
+    for option, value in (("--plan", plan), ("--region", region), ("--pixels", pixels),
+                          ("--contact-batch", contact_batch)):
         if resume is not None and value is not None:
             raise InputError(None, option, "shapes how a run starts; a resumed run goes on from its log's "
                                            "checkpoint (not with --resume)")
@@ -565,6 +576,7 @@ def dry_run_cmd(
     plan: PlanFile = None,
     region: Region = None,
     pixels: Pixels = None,
+    contact_batch: ContactBatch = None,
 ) -> None:
     """Assemble LAYOUT in a simulated world holding SCENE, exactly as a real run would."""
     from nanoasm.dryrun import dry_run_files, resume_dry_run
@@ -578,7 +590,7 @@ def dry_run_cmd(
     if resume is None and scene_file is None and layout_file is None:
         scene_file, layout_file = example("bowtie_scene.toml"), example("bowtie.toml")
     kept = None if log is None else sim_state_path(log)
-    _check_fresh(resume, plan, region, pixels)
+    _check_fresh(resume, plan, region, pixels, contact_batch)
     _outputs_apart([("--log", log), ("--log", kept), ("--report", report)],
                    [("SCENE", scene_file), ("LAYOUT", layout_file), ("--resume", resume), ("--plan", plan),
                     ("the world kept for --resume", None if resume is None else sim_state_path(resume))])
@@ -600,7 +612,8 @@ def dry_run_cmd(
                             align=_align(no_align, align_scale))
     outcome, layout = dry_run_files(scene_file, layout_file, seed=seed, strategy=strategy,
                                     plan_options=plan_options, log=log_to, report=report,
-                                    progress=progress, plan=plan, region=region, pixels=pixels)
+                                    progress=progress, plan=plan, region=region, pixels=pixels,
+                                    contact_batch=contact_batch)
     _print_summary(layout, outcome)
     if report is not None:
         print(f"{report}: written")
@@ -626,6 +639,7 @@ def run_cmd(
     plan: PlanFile = None,
     region: Region = None,
     pixels: Pixels = None,
+    contact_batch: ContactBatch = None,
 ) -> None:
     """Assemble LAYOUT unattended on the instrument described by --instrument: an NI-DAQmx
     card (backend = "nidaq") or a Nanonis controller (backend = "nanonis")."""
@@ -646,14 +660,14 @@ def run_cmd(
         raise InputError(None, "--resume", "takes the layout from the log; give no LAYOUT")
     if resume is None and layout_file is None:
         raise InputError(None, "LAYOUT", "is required (or --resume LOG)")
-    _check_fresh(resume, plan, region, pixels)
+    _check_fresh(resume, plan, region, pixels, contact_batch)
     _outputs_apart([("--log", log), ("--report", report)],
                    [("LAYOUT", layout_file), ("--instrument", instrument), ("--resume", resume), ("--plan", plan)])
     _check_log(log, force)
     rep = run_files(instrument, layout_file, strategy=strategy, resume_from=resume,
                     log=LogTo(log, live, live_port), report=report, progress=_run_progress("run", log_level),
                     plan_options=PlanOptions(align=_align(no_align, align_scale)), plan=plan, region=region,
-                    pixels=pixels)
+                    pixels=pixels, contact_batch=contact_batch)
     states = {s: sum(v.state == s for v in rep.slots) for s in ("filled", "missed", "unfilled")}
     print(f"run: {states['filled']} of {len(rep.targets)} slot(s) filled by the check scans "
           f"({states['missed']} missed, {states['unfilled']} unfilled), "

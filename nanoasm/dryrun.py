@@ -31,6 +31,7 @@ from nanoasm.executor.assembly import Assembly
 from nanoasm.executor.calibration import Calibration
 from nanoasm.executor.calibration_fit import CalibrationFailed
 from nanoasm.executor.documents import as_dict
+from nanoasm.executor.checkpoints import checkpoint_batch
 from nanoasm.executor.engine import RunEngine, Subscriber
 from nanoasm.executor.report import Report
 from nanoasm.executor.resume import resume_point, resumed_log_path
@@ -278,10 +279,12 @@ def truth_slots(layout: Layout, final) -> tuple[str, ...]:
     return tuple(sorted(targets[i].id for i, j in zip(rows, cols) if ok[i, j]))
 
 
-def exec_options(scene: Scene, strategy: str = "full") -> ExecOptions:
+def exec_options(scene: Scene, strategy: str = "full", contact_batch: int | None = None) -> ExecOptions:
     """The executor's options in a dry-run of ``scene``: it pushes at the scene's
-    ``[timing] push_speed`` (the simulated instrument's)."""
-    return ExecOptions(strategy=strategy, push_speed=scene.params.timing.push_speed)
+    ``[timing] push_speed`` (the simulated instrument's); ``contact_batch`` (None: the
+    default) as ``nanoasm dry-run --contact-batch`` gives it."""
+    batch = {} if contact_batch is None else {"contact_batch": contact_batch}
+    return ExecOptions(strategy=strategy, push_speed=scene.params.timing.push_speed, **batch)
 
 
 def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
@@ -361,15 +364,16 @@ def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,
 def dry_run_files(scene_file: Path, layout_file: Path, *, seed: int | None = None, strategy: str = "full",
                   plan_options: PlanOptions | None = None, log: LogTo = LogTo(), report: Path | None = None,
                   progress: AbstractContextManager | None = None, plan: Path | None = None, region=None,
-                  pixels: int | None = None) -> tuple[Outcome, Layout]:
+                  pixels: int | None = None, contact_batch: int | None = None) -> tuple[Outcome, Layout]:
     """A dry-run as ``nanoasm dry-run`` makes it: the scene and layout files, the run log
     (with the simulated world kept beside it, for resuming), the report file.
     ``progress`` gives extra subscribers for the run (a progress line) while it runs;
     ``plan``, ``region``, ``pixels``: the reviewed plan to execute and the full scan
-    (:func:`nanoasm.harness.run_start`). Returns the outcome and the layout."""
+    (:func:`nanoasm.harness.run_start`); ``contact_batch``: ``ExecOptions.contact_batch``
+    (None: its default). Returns the outcome and the layout."""
     scene = load_scene(scene_file)
     layout = load_layout(layout_file)
-    options = exec_options(scene, strategy)
+    options = exec_options(scene, strategy, contact_batch)
     reviewed, scan, start = run_start(layout, layout_file, scene.params.scanner, options.pixel_size, plan=plan,
                                       region=region, pixels=pixels, align=(plan_options or PlanOptions()).align)
     meta = {"kind": "dry-run", "strategy": strategy, "seed": seed, "scene": str(scene_file),
@@ -401,7 +405,8 @@ def resume_dry_run(stopped: Path, *, plan_options: PlanOptions | None = None, lo
     log = replace(log, path=log.path or resumed_log_path(stopped))
     given = {k: meta[k] for k in ("kind", "strategy", "seed", "scene", "layout") if k in meta}
     outcome = _logged(point.scene, point.layout, {**given, "resumed_from": str(stopped)}, log, report, progress,
-                      seed=seed, options=exec_options(point.scene, point.state["strategy"]),
+                      seed=seed, options=exec_options(point.scene, point.state["strategy"],
+                                                      checkpoint_batch(point.state)),
                       plan_options=replace(plan_options or PlanOptions(), seed=seed or 0),
                       scene_name=meta.get("scene"), layout_name=meta.get("layout"),
                       keep_sim=sim_state_path(log.path), resume=(point.state, kept), carry=point.inherited)

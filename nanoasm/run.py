@@ -18,6 +18,7 @@ from pathlib import Path
 from nanoasm.cad.layout import Layout, load_layout
 from nanoasm.errors import InputError
 from nanoasm.executor.assembly import Assembly
+from nanoasm.executor.checkpoints import checkpoint_batch
 from nanoasm.executor.engine import RunEngine, Subscriber
 from nanoasm.executor.lever_file import InstrumentLever
 from nanoasm.executor.report import Report
@@ -59,14 +60,17 @@ def run(layout: Layout, instrument, *, options: ExecOptions | None = None,
 def run_files(instrument_file: Path, layout_file: Path | None = None, *, strategy: str = "full",
               resume_from: Path | None = None, log: LogTo = LogTo(), report: Path | None = None,
               progress: AbstractContextManager | None = None, plan_options: PlanOptions | None = None,
-              plan: Path | None = None, region=None, pixels: int | None = None) -> Report:
+              plan: Path | None = None, region=None, pixels: int | None = None,
+              contact_batch: int | None = None) -> Report:
     """A run as ``nanoasm run`` makes it: the hardware backend of ``instrument_file``,
     the layout file or, with ``resume_from``, the layout, strategy and last checkpoint of
     that stopped run's log (logged to ``log.path`` or else a new log beside it), the run
     log with the instrument file attached, the report file. ``progress`` gives extra
     subscribers for the run (a progress line) while it runs; ``plan_options``: how to plan
     (and register a layout with marks: ``align``); ``plan``, ``region``, ``pixels``: the
-    reviewed plan to execute and the full scan (:func:`nanoasm.harness.run_start`)."""
+    reviewed plan to execute and the full scan (:func:`nanoasm.harness.run_start`);
+    ``contact_batch``: ``ExecOptions.contact_batch`` (None: its default; a resumed run
+    takes its checkpoint's)."""
     from nanoasm.executor.instrument_file import load_instrument_config
 
     point = None
@@ -74,13 +78,15 @@ def run_files(instrument_file: Path, layout_file: Path | None = None, *, strateg
         point = resume_point(resume_from, "run")
         warn(point.warnings)
         layout, strategy = point.layout, point.state["strategy"]
+        contact_batch = checkpoint_batch(point.state)
         layout_file = Path(point.metadata.get("layout", "layout.json"))
         log = replace(log, path=log.path or resumed_log_path(resume_from))
     else:
         layout = load_layout(layout_file)
     config = load_instrument_config(instrument_file)
     mu_ts = None if config.lever is None else config.lever.mu_ts
-    options = ExecOptions(strategy=strategy, substrate_friction=mu_ts or 0.0)
+    batch = {} if contact_batch is None else {"contact_batch": contact_batch}
+    options = ExecOptions(strategy=strategy, substrate_friction=mu_ts or 0.0, **batch)
     reviewed, scan, start = run_start(layout, layout_file, config.scanner, options.pixel_size, plan=plan,
                                       region=region, pixels=pixels, align=(plan_options or PlanOptions()).align)
     if config.lever is None:        # the seed's lever would mis-aim every push on another lever

@@ -124,6 +124,8 @@ def test_region_and_pixels_set_the_full_scan(tmp_path, capsys):
     (["--region", "0", "0", "50000", "50000"], "--region: a 50000 nm square at 10 nm a pixel needs 5000 pixels"),
     (["--pixels", "8"], "--pixels: must be from 16 to 4096 pixels a side, got 8"),
     (["--pixels", "60"], "--pixels: 60 pixels over 4000 nm are 66.7 nm each, too coarse for the layout's 90 nm"),
+    (["--contact-batch", "0"], "--contact-batch: must be"),
+    (["--contact-batch", "65"], "--contact-batch: must be"),
 ])
 def test_a_bad_region_or_pixel_count_is_one_line(args, words, tmp_path, capsys):
     report = tmp_path / "r.json"
@@ -147,6 +149,9 @@ def test_run_checks_plan_and_region_before_the_instrument(reviewed, tmp_path, ca
     code = main(["dry-run", "--resume", str(tmp_path / "x.mcap"), "--plan", str(reviewed)])
     (line,) = error_lines(capsys.readouterr().err)
     assert code == 1 and line.startswith("nanoasm: error: --plan: shapes how a run starts")
+    code = main(["run", "--instrument", str(inst), "--resume", str(tmp_path / "x.mcap"), "--contact-batch", "2"])
+    (line,) = error_lines(capsys.readouterr().err)
+    assert code == 1 and line.startswith("nanoasm: error: --contact-batch: shapes how a run starts")
 
 
 def test_a_plan_for_other_slots_is_refused_before_the_run(reviewed, tmp_path):
