@@ -149,9 +149,15 @@ def dependency_graph(moves: Sequence[tuple[str, str]], targets: Mapping[str, Bod
     for t2, obj2 in moves:
         for k in ctree.query(_footprint(objects[obj2]), predicate="intersects"):
             t1 = ctree_ids[k]
-            if t1 != t2 and not g.has_edge(("fill", t2), ("fill", t1)) and \
-                    not g.has_edge(("fill", t1), ("fill", t2)):
-                g.add_edge(("fill", t2), ("fill", t1), hard=False)
+            if t1 == t2 or g.has_edge(("fill", t2), ("fill", t1)) or g.has_edge(("fill", t1), ("fill", t2)):
+                continue
+            if targets[t1].kind != targets[t2].kind and \
+                    _rod_or_particle_first(t1, t2, targets, objects, slot_obj) == t1:
+                # a particle in a rod's way whose slot lies on the side the rod comes from
+                # would bar the way for good once there: the rod goes first, around it
+                # (the bundled bowtie: its left triangle filled first shut the rod out)
+                continue
+            g.add_edge(("fill", t2), ("fill", t1), hard=False)
     return g, blocked
 
 

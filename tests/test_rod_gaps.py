@@ -244,3 +244,22 @@ def test_a_rod_slot_with_no_way_in_says_why_and_where():
     x, y, _, dist, _ = (int(v) for v in near.groups())
     assert y < C - 700 and dist == pytest.approx(math.dist((x, y), (C, C)), abs=1)   # below the lid
     assert "no SE(2) path (OMPL)" in u.reason
+
+
+def test_a_particle_in_a_rods_way_whose_slot_is_on_the_rods_side_waits_for_the_rod():
+    """The bundled bowtie's order (seeds 1 and 8 left its rod slot 'no path'): a particle
+    lying in the rod's corridor used to go first, to a slot beside the rod's way on the
+    side the rod comes from; there it barred the way for good. The rod goes first."""
+    targets = {"bar": Body("bar", "rod", (2500.0, 1500.0), 80.0, 0.0, 800.0),
+               "l1": Body("l1", "particle", (2380.0, 2500.0), 100.0)}
+    objects = {"r": Body("r", "rod", (3662.0, 4121.0), 80.0, 117.5, 800.0),
+               "a": Body("a", "particle", (2600.0, 2000.0), 100.0)}   # in the rod's corridor
+    moves = [("l1", "a"), ("bar", "r")]
+    efforts = {t: math.dist(objects[o].at, targets[t].at) for t, o in moves}
+    for listing in (moves, moves[::-1]):
+        fills = [n[1] for n in order(listing, targets, objects, set(), 20.0, efforts)[0] if n[0] == "fill"]
+        assert fills == ["bar", "l1"]
+    # a particle slot on the far side of the rod's slot: the particle clears the way first
+    far = {**targets, "l1": Body("l1", "particle", (2380.0, 800.0), 100.0)}
+    fills = [n[1] for n in order(moves, far, objects, set(), 20.0, efforts)[0] if n[0] == "fill"]
+    assert fills == ["l1", "bar"]
