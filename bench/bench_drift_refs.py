@@ -173,13 +173,14 @@ def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: fl
              "## Per family: medians (worst) over seeds", "",
              "| family | contact batch | runs | max σ nm | RMS nm | worst RMS | in 3σ | worst in 3σ | references "
              "| particle slots | truly | particle RMS nm | all slots | pushes | verdict |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "|" + " --- |" + " ---: |" * 14]
     for fam, batch in dict.fromkeys((r["family"], r["batch"]) for r in rows):
         rs = [r for r in rows if r["family"] == fam and r["batch"] == batch]
         ps = sum(r["particle_slots"] for r in rs)
         pf = sum(r["particle_filled"] for r in rs)
         lines.append(
-            f"| {fam} | {batch} | {len(rs)} | {_fmt(_median(rs, 'max_sigma'))} ({_fmt(max(r['max_sigma'] for r in rs))}) "
+            f"| {fam} | {batch} | {len(rs)} "
+            f"| {_fmt(_median(rs, 'max_sigma'))} ({_fmt(max(r['max_sigma'] for r in rs))}) "
             f"| {_fmt(_median(rs, 'rms'))} | {_fmt(max(r['rms'] for r in rs))} "
             f"| {_fmt(_median(rs, 'within3'))} | {_fmt(min(r['within3'] for r in rs))} "
             f"| {_fmt(_median(rs, 'ref_share'))} ({_fmt(_median(rs, 'ref_boot_share'))}) "
@@ -203,11 +204,11 @@ def report(rows: list[dict], jump_rows: list[dict], argv: list[str], seconds: fl
                   f"| {_fmt(r['particle_rms'])} | {_fmt(r['rms'])} | {_fmt(r['relocalise_s'])} "
                   f"| {'yes' if r['agree'] else 'no'} |" for r in jump_rows]
     lines += ["", "## Every run", "",
-              "| family | contact batch | seed | updates | max σ | RMS | max err | in 3σ | references | with bootstrap "
-              "| particle | particle RMS | slots | pushes | instrument s | wall s |",
-              "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: "
-              "| ---: |"]
-    lines += [f"| {r['family']} | {r['batch']} | {r['seed']} | {r['updates']} | {_fmt(r['max_sigma'])} | {_fmt(r['rms'])} "
+              "| family | contact batch | seed | updates | max σ | RMS | max err | in 3σ | references "
+              "| with bootstrap | particle | particle RMS | slots | pushes | instrument s | wall s |",
+              "|" + " --- |" + " ---: |" * 15]
+    lines += [f"| {r['family']} | {r['batch']} | {r['seed']} | {r['updates']} "
+              f"| {_fmt(r['max_sigma'])} | {_fmt(r['rms'])} "
               f"| {_fmt(r['max_err'])} | {_fmt(r['within3'])} | {_fmt(r['ref_share'])} | {_fmt(r['ref_boot_share'])} "
               f"| {r['particle_filled']}/{r['particle_slots']} | {_fmt(r['particle_rms'])} "
               f"| {r['filled']}/{r['slots']} | {r['pushes']} | {_fmt(r['instrument_s'], 4)} | {_fmt(r['wall_s'])} |"
