@@ -74,9 +74,7 @@ def one_run(args: tuple) -> dict:
     if jump:
         scene = with_jump(scene, jump, after)
     w0 = time.perf_counter()
-    options = ExecOptions(strategy="full", trust_after_scan=trust)
-    if batch is not None:
-        options = replace(options, contact_batch=batch)
+    options = ExecOptions(strategy="full", trust_after_scan=trust).batched(batch)
     out = dry_run(scene, layout, options=options)
     wall = time.perf_counter() - w0
     pts = out.drift

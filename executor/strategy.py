@@ -15,7 +15,7 @@ anchor         yes           no            yes             no           one unto
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from nanoasm.param import param, validate
 from nanoasm.world.limits import MIN_PUSH_SPEED
@@ -220,3 +220,8 @@ class ExecOptions:
 
     def __post_init__(self) -> None:
         validate(self)
+
+    def batched(self, contact_batch: int | None) -> ExecOptions:
+        """These options with ``contact_batch`` (None: as they are): ``--contact-batch``, or
+        a resumed run's checkpoint (:func:`.checkpoints.checkpoint_batch`)."""
+        return self if contact_batch is None else replace(self, contact_batch=contact_batch)

@@ -283,8 +283,7 @@ def exec_options(scene: Scene, strategy: str = "full", contact_batch: int | None
     """The executor's options in a dry-run of ``scene``: it pushes at the scene's
     ``[timing] push_speed`` (the simulated instrument's); ``contact_batch`` (None: the
     default) as ``nanoasm dry-run --contact-batch`` gives it."""
-    batch = {} if contact_batch is None else {"contact_batch": contact_batch}
-    return ExecOptions(strategy=strategy, push_speed=scene.params.timing.push_speed, **batch)
+    return ExecOptions(strategy=strategy, push_speed=scene.params.timing.push_speed).batched(contact_batch)
 
 
 def dry_run(scene: Scene, layout: Layout, *, seed: int | None = None,

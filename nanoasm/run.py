@@ -85,8 +85,7 @@ def run_files(instrument_file: Path, layout_file: Path | None = None, *, strateg
         layout = load_layout(layout_file)
     config = load_instrument_config(instrument_file)
     mu_ts = None if config.lever is None else config.lever.mu_ts
-    batch = {} if contact_batch is None else {"contact_batch": contact_batch}
-    options = ExecOptions(strategy=strategy, substrate_friction=mu_ts or 0.0, **batch)
+    options = ExecOptions(strategy=strategy, substrate_friction=mu_ts or 0.0).batched(contact_batch)
     reviewed, scan, start = run_start(layout, layout_file, config.scanner, options.pixel_size, plan=plan,
                                       region=region, pixels=pixels, align=(plan_options or PlanOptions()).align)
     if config.lever is None:        # the seed's lever would mis-aim every push on another lever
