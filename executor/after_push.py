@@ -50,11 +50,31 @@ def review(asm, op: Operation, outcome: str, ops: list[Operation], i: int):
 def correct(asm, op: Operation, ops: list[Operation], i: int, corrections: dict[str, int]) -> None:
     """The last push of ``op``'s object left it short of its slot: correction pushes
     (at most ``max_corrections`` an object) put in at ``ops[i]``."""
+    _correct(asm, op.target, op.object, ops, i, corrections)
+
+
+def _correct(asm, target: str, obj_id: str, ops: list[Operation], i: int, corrections: dict[str, int]) -> None:
+    """Correction pushes of ``obj_id`` into slot ``target`` put in at ``ops[i]`` (:func:`correct`)."""
     ctx = asm.ctx
-    extra = courses.correction(asm.layout, ctx.belief, op.target, op.object, corrections,
-                               asm.options.max_corrections, asm.plan_options, max(p.id for p in ops) + 1)
+    extra = courses.correction(asm.layout, ctx.belief, target, obj_id, corrections,
+                               asm.options.max_corrections, asm.plan_options, max((p.id for p in ops), default=0) + 1)
     if extra is not None:
         ctx.ledger.counts["replans"] += 1
     if extra:
         ops[i:i] = extra
         asm.course.follow(ctx.environment(), extra, extend=True)
+
+
+def shoved_back(asm, ops: list[Operation], i: int, corrections: dict[str, int]) -> None:
+    """Neighbours a push shoved (``RunContext.shoved``, :mod:`.shoves`) that the plan holds
+    in a slot and no longer pushes: correction pushes that bring each back within the
+    tight tolerance of its slot, put in at ``ops[i]`` (as for a pushed object its last push
+    left short, :func:`correct`; none if it is still within it). A shoved object the plan
+    still pushes starts its next push from where the scan found it."""
+    ctx = asm.ctx
+    shoved, ctx.shoved = ctx.shoved, set()
+    plan = asm.replanner.plan or asm.first_plan
+    slot = {a.object: a.target for a in plan.assignment}
+    for oid in sorted(shoved):
+        if oid in slot and oid not in ctx.belief.lost and all(p.object != oid for p in ops[i:]):
+            _correct(asm, slot[oid], oid, ops, i, corrections)

@@ -40,7 +40,7 @@ from .drift_steps import unskewed_obstacles
 from .engine import Msg
 from .estimators import estimator_for
 from .motion_steps import travel_to
-from .after_push import correct, review
+from .after_push import correct, review, shoved_back
 from .batching import push_together, together
 from .pushing import push
 from .landmarks import Landmarks, moved_area
@@ -252,6 +252,8 @@ class Assembly:
                 for op in group:
                     if op.target is not None and all(p.object != op.object for p in ops[i:]):
                         correct(self, op, ops, i, corrections)
+            if ctx.shoved:
+                shoved_back(self, ops, i, corrections)
             mark = self._count_execute(mark)        # the checkpoint holds the compute so far
             t_now = yield Msg("clock")
             yield Msg("checkpoint", (checkpoint(self, ops[i:], done, corrections, t_now),))

@@ -158,10 +158,11 @@ def push_together(ctx: RunContext, group: list[Operation], course, lever, plan_o
     finally:
         ctx.drift = est
     outcomes = []
-    for done in pressed:
+    for k, done in enumerate(pressed):
         if isinstance(done, str):
             outcomes.append(done)
             continue
         verdict, op, start = done
-        outcomes.append((yield from conclude(ctx, op, start, verdict, course, plan_options)))
+        pending = {p.object for p in group[k + 1:]}     # believed where they were before their pushes
+        outcomes.append((yield from conclude(ctx, op, start, verdict, course, plan_options, pending)))
     return outcomes

@@ -26,6 +26,7 @@ from .reaim import particle_push, rod_push
 from .references import swept_area
 from .relocalise import keep_track
 from .scan_steps import locate, scan_after
+from .shoves import look_at_shoved
 
 #: A push planned longer than this (nm) that moved its object less than
 #: :data:`SLIP_SHARE` of the way left it where it was: the tip slipped over it.
@@ -216,9 +217,11 @@ def press(ctx: RunContext, op: Operation, start, course: Course, lever: Cantilev
     return verdict, op
 
 
-def conclude(ctx: RunContext, op: Operation, start, verdict: Verdict, course: Course, plan_options: PlanOptions):
-    """After the push, in tapping mode: where did the object go (the scan after it), and
-    the push's record. Returns "ok", "failed" or "lost"."""
+def conclude(ctx: RunContext, op: Operation, start, verdict: Verdict, course: Course, plan_options: PlanOptions,
+             pending=()):
+    """After the push, in tapping mode: where did the object go (the scan after it), the
+    neighbours it shoved (:mod:`.shoves`; ``pending``: objects pushed whose scans after are
+    still to come) and the push's record. Returns "ok", "failed" or "lost"."""
     obj_id, ledger = op.object, ctx.ledger
     if ctx.options.strategy.scans:
         after = yield from scan_after(ctx, op, start)
@@ -247,6 +250,7 @@ def conclude(ctx: RunContext, op: Operation, start, verdict: Verdict, course: Co
         if body.kind == "rod":
             (ctx.pivots.restart if verdict.failed else ctx.pivots.seen)(body, cov)
         ctx.last_after = [obj_id, float(t), ctx.drift.revision(), ledger.counts["pushes"]]
+        yield from look_at_shoved(ctx, obj_id, pending)
     t_end = yield Msg("clock")
     _quarantine(ctx, op, [start, ctx.belief[obj_id]], plan_options, t_end)
     doc = {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,
