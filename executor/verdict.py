@@ -30,7 +30,8 @@ from nanoasm.cad.layout import Layout
 
 from .apex_check import CROWDED, ROUND, apex_cov, image_check
 from .context import RunContext
-from .drift_steps import suspect_drift
+from .course import tight
+from .drift_steps import suspect_drift, take_reference
 from .engine import Msg
 from .local_scan import particle_before, rod_before
 from .scan_steps import clear_direction, run_pattern
@@ -158,6 +159,9 @@ def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous
             obj = assigned.get(target.id)
             verdict = yield from _check_slot(ctx, target, obj, layout.tolerance, held=held)
             out[todo[k]] = verdict
+            if not again and _near_edge(target, verdict, layout):
+                out[todo[k]] = yield from _look_again(ctx, target, obj, layout, verdict)
+                continue
             if again or verdict.state != "missed":
                 continue
             if (yield from suspect_drift(ctx, obj, target.at)):
@@ -175,6 +179,33 @@ def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous
         else:
             break
     return tuple(out)
+
+
+def _near_edge(target, verdict, layout: Layout) -> bool:
+    """A rod slot the check found filled, but farther from its centre than the tight
+    tolerance (:func:`~.course.tight`): a rod's check errs more than a particle's (its
+    lines after the travel to it, ends hidden by neighbours), and no repair round pushes a
+    rod in as it does a particle at the edge (:mod:`.edge_slots`)."""
+    return (target.kind == "rod" and verdict.state == "filled" and verdict.error is not None
+            and verdict.error > tight(layout).position)
+
+
+def _look_again(ctx: RunContext, target, obj: str | None, layout: Layout, first) -> Any:
+    """A rod slot :func:`_near_edge`: a drift reference measured near it, then the slot
+    scanned once more, the creep of the travel to it settled; the second look is the
+    verdict (plan stub; without drift references, the second look alone). ``rods`` seed 5
+    on dcdd462: the one look put a shoved rod 16.4 nm from its slot where it lay 20.9 nm
+    off. Over ``rods``, ``mixed``, ``device`` and ``rodgap`` (seeds 1-10, dcdd462) the error
+    a check measured differed from the true one by up to 10 nm at a rod slot (6 nm at the
+    90th percentile), 6 nm at a particle slot (3.6)."""
+    if ctx.drift.uses_landmarks:
+        yield from take_reference(ctx, target.at, obj, force=True)
+    second = yield from _check_slot(ctx, target, obj, layout.tolerance)
+    after = " after a drift reference" if ctx.drift.uses_landmarks else ""
+    yield Msg("event", (f"slot {target.id}: filled {first.error:.1f} nm off, beyond {tight(layout).position:.0f} "
+                        f"nm; checked again{after}: {second.state}"
+                        + ("" if second.error is None else f" ({second.error:.1f} nm)"),))
+    return second
 
 
 def tour(start, points) -> list[int]:

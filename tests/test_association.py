@@ -166,6 +166,29 @@ def test_a_rod_of_any_size_its_slot_takes_is_found_filling_it(length, d):
     assert v.state == "filled" and abs(v.error - math.hypot(4, 2)) < 3.0, events
 
 
+@pytest.mark.parametrize("off, again", [(8.0, False), (15.0, True), (24.0, False)])
+def test_a_rod_slot_filled_near_the_edge_is_checked_twice(off, again):
+    """A rod slot whose check finds it filled beyond the tight tolerance (0.6 x 20 nm) is
+    scanned once more and the second look is the verdict (verdict._look_again); within it,
+    or missed, one look (a missed slot has its own second look after a drift reference)."""
+    from simkit import rod
+
+    from nanoasm.bodies import Body
+    from nanoasm.cad.layout import Layout
+    from nanoasm.executor.verdict import check_slots
+    from nanoasm.planner.plan import Assignment
+
+    layout = Layout((4000.0, 4000.0), (Body("bar", "rod", (1000.0, 2000.0), 70.0, 0.0, 600.0),))
+    (v,), ctx, events = _run([rod((1000.0 + off, 2000.0), 0.0, 600.0, d=70.0, id="r")],
+                             [EnvObject("a", "rod", (1000.0 + off, 2000.0), 70.0, 0.0, 600.0)],
+                             lambda ctx: check_slots(ctx, layout, (Assignment("bar", "a"),)), r_max=40.0)
+    assert abs(v.error - off) < 3.0
+    assert v.state == ("filled" if off < 20.0 else "missed")
+    twice = [e for e in events if e.startswith("slot bar: filled") and "checked again: filled" in e]
+    assert len(twice) == (1 if again else 0), events
+    assert ctx.ledger.counts["local_scans"] == (2 if again else 1)
+
+
 def test_check_scans_of_some_slots_keep_the_others_verdicts():
     """A repair round that plans no push scans the slots not filled again (``only``): the
     slot scanned gets what its scan finds, the other keeps its last verdict, even one its
