@@ -26,7 +26,7 @@ from .reaim import particle_push, rod_push
 from .references import swept_area
 from .relocalise import keep_track
 from .scan_steps import locate, scan_after
-from .shoves import look_at_shoved
+from .shoves import after_push
 
 #: A push planned longer than this (nm) that moved its object less than
 #: :data:`SLIP_SHARE` of the way left it where it was: the tip slipped over it.
@@ -250,7 +250,7 @@ def conclude(ctx: RunContext, op: Operation, start, verdict: Verdict, course: Co
         if body.kind == "rod":
             (ctx.pivots.restart if verdict.failed else ctx.pivots.seen)(body, cov)
         ctx.last_after = [obj_id, float(t), ctx.drift.revision(), ledger.counts["pushes"]]
-        yield from look_at_shoved(ctx, obj_id, pending)
+        yield from after_push(ctx, op, body, pending)
     t_end = yield Msg("clock")
     _quarantine(ctx, op, [start, ctx.belief[obj_id]], plan_options, t_end)
     doc = {"op": op.to_dict(), "verdict": verdict.status, "t": t_end,

@@ -15,7 +15,7 @@ from simkit import particle, rod, world
 
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout, Tolerance
-from nanoasm.executor.after_push import shoved_back
+from nanoasm.executor.after_push import review, shoved_back
 from nanoasm.executor.belief import Belief
 from nanoasm.executor.context import RunContext
 from nanoasm.executor.course import Course
@@ -26,15 +26,15 @@ from nanoasm.executor.references import References
 from nanoasm.executor.shoves import OVERLAP, look_at_shoved, overlapping
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.planner import PlanOptions
-from nanoasm.planner.plan import Assignment, Plan
+from nanoasm.planner.plan import Assignment, Expect, Operation, Plan
 from nanoasm.world.environment import EnvObject, Environment
 
 ROD = dict(diameter=70.0, angle=0.0, length=600.0)
 
 
-def _ctx(objects, config=None):
+def _ctx(objects, config=None, strategy="local-scan"):
     env = Environment((4000.0, 4000.0), tuple(objects), ())
-    return RunContext(config, ExecOptions(strategy="local-scan", r_max=60.0), NoDrift((0.0, 0.0), 0.0),
+    return RunContext(config, ExecOptions(strategy=strategy, r_max=60.0), NoDrift((0.0, 0.0), 0.0),
                       Belief(env, 0.0), References())
 
 
@@ -70,7 +70,7 @@ def test_a_shoved_rod_is_located_where_the_shove_left_it():
     # the push left p at 1670 and shoved the rod 25 nm along its axis, to 2025
     truth = [particle((1670, 2000), d=90.0, id="p"), rod((2025, 2000), 0.0, 600.0, d=70.0, id="r")]
     found, ctx, events = _look(truth, _believed((1670.0, 2000.0)))
-    assert found == ["r"] and ctx.shoved == {"r"}
+    assert found == ["r"] and set(ctx.shoved) == {"r"} and abs(ctx.shoved["r"] - 25.0) < 5.0
     assert math.dist(ctx.belief["r"].at, (2025.0, 2000.0)) < 5.0
     assert any("r: shoved by the push of p" in e for e in events)
 
@@ -81,11 +81,11 @@ def test_a_neighbour_clear_of_the_push_is_not_scanned():
     assert found == [] and not ctx.shoved and ctx.ledger.counts["local_scans"] == 0
 
 
-def _asm(belief_at, ops=()):
+def _asm(belief_at, ops=(), strategy="local-scan"):
     slot = Body("s1", "particle", (1000.0, 1000.0), 90.0)
     layout = Layout((4000.0, 4000.0), (slot,), tolerance=Tolerance(position=20.0))
-    ctx = _ctx([EnvObject("a", "particle", belief_at, 90.0)])
-    ctx.shoved.add("a")
+    ctx = _ctx([EnvObject("a", "particle", belief_at, 90.0)], strategy=strategy)
+    ctx.shoved["a"] = 16.0
     plan = Plan(None, (Assignment("s1", "a"),), tuple(ops))
     asm = SimpleNamespace(ctx=ctx, layout=layout, options=ctx.options, plan_options=PlanOptions(),
                           course=Course(), replanner=SimpleNamespace(plan=plan), first_plan=plan)
@@ -105,3 +105,23 @@ def test_a_shoved_object_still_within_the_tight_tolerance_is_left():
     asm, ops = _asm((1008.0, 1000.0))
     shoved_back(asm, ops, 0, {})
     assert ops == [] and not asm.ctx.shoved
+
+
+def _returned(stub):
+    """What a plan stub that asks nothing of the instrument returns."""
+    try:
+        msg = next(stub)
+    except StopIteration as done:
+        return done.value
+    raise AssertionError(f"the stub asked for {msg}")
+
+
+def test_a_neighbour_shoved_farther_than_replan_after_has_the_rest_planned_again():
+    asm, _ = _asm((1000.0, 1000.0), strategy="full")
+    asm.strategy = asm.options.strategy
+    op = Operation(1, "a", "s1", ((900.0, 1000.0), (955.0, 1000.0)), Expect((1000.0, 1000.0)))
+    limit = asm.options.replan_after
+    asm.ctx.shoved = {"b": limit - 1.0}
+    assert _returned(review(asm, op, "ok", [op], 1)) is None
+    asm.ctx.shoved = {"b": limit + 20.0}
+    assert f"b shoved {limit + 20.0:.0f} nm" in _returned(review(asm, op, "ok", [op], 1))
