@@ -44,8 +44,8 @@ class RunContext:
     checkpoints: a run log holds them). ``corrected``: a relocalisation moved believed
     objects since the plan was last made (the plan is made again after the push);
     ``shoved``: neighbours a push shoved, located again since, each with how far (nm) from
-    where it was believed (:mod:`.shoves`; the run's loop plans again after one found
-    farther than ``replan_after`` and brings placed ones back; neither kept in checkpoints).
+    where it was believed (:mod:`.shoves`; the run's loop brings placed ones back; neither
+    kept in checkpoints).
     ``pivots``: every pushed rod's pose-and-pivot-offset filter. ``baselines``: the
     calibration's free-air maps A(i, j), B(i, j) the push monitor compensates with (not in
     checkpoints: the instrument's, given again on resuming). ``surveyed``: windows (layout

@@ -11,11 +11,8 @@ check scan, its ends hidden by the particles at both, put the rod 16.4 nm from i
 where it lay 20.9 nm off, tolerance 20, and the report called the slot filled). Such a
 neighbour is located again at once, its belief first moved out of the overlap (where the
 shove would have put it), and the belief keeps what the scan found; it is named in
-``RunContext.shoved`` for the run's loop, which plans the rest again when one was found
-farther than ``replan_after`` from where it was believed (the plan counted on it there:
-``device`` seed 9, a particle the rod carried 353 nm, which a later replan had assigned to
-the slot no other particle could reach, was left out once the run knew where it went),
-and brings a placed one back into its slot (:func:`~.after_push.shoved_back`).
+``RunContext.shoved`` for the run's loop, which brings a placed one back into its slot
+(:func:`~.after_push.shoved_back`).
 """
 
 from __future__ import annotations

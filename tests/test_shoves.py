@@ -15,7 +15,7 @@ from simkit import particle, rod, world
 
 from nanoasm.bodies import Body
 from nanoasm.cad.layout import Layout, Tolerance
-from nanoasm.executor.after_push import review, shoved_back
+from nanoasm.executor.after_push import shoved_back
 from nanoasm.executor.belief import Belief
 from nanoasm.executor.context import RunContext
 from nanoasm.executor.course import Course
@@ -26,7 +26,7 @@ from nanoasm.executor.references import References
 from nanoasm.executor.shoves import OVERLAP, look_at_shoved, overlapping
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.planner import PlanOptions
-from nanoasm.planner.plan import Assignment, Expect, Operation, Plan
+from nanoasm.planner.plan import Assignment, Plan
 from nanoasm.world.environment import EnvObject, Environment
 
 ROD = dict(diameter=70.0, angle=0.0, length=600.0)
@@ -106,22 +106,3 @@ def test_a_shoved_object_still_within_the_tight_tolerance_is_left():
     shoved_back(asm, ops, 0, {})
     assert ops == [] and not asm.ctx.shoved
 
-
-def _returned(stub):
-    """What a plan stub that asks nothing of the instrument returns."""
-    try:
-        msg = next(stub)
-    except StopIteration as done:
-        return done.value
-    raise AssertionError(f"the stub asked for {msg}")
-
-
-def test_a_neighbour_shoved_farther_than_replan_after_has_the_rest_planned_again():
-    asm, _ = _asm((1000.0, 1000.0), strategy="full")
-    asm.strategy = asm.options.strategy
-    op = Operation(1, "a", "s1", ((900.0, 1000.0), (955.0, 1000.0)), Expect((1000.0, 1000.0)))
-    limit = asm.options.replan_after
-    asm.ctx.shoved = {"b": limit - 1.0}
-    assert _returned(review(asm, op, "ok", [op], 1)) is None
-    asm.ctx.shoved = {"b": limit + 20.0}
-    assert f"b shoved {limit + 20.0:.0f} nm" in _returned(review(asm, op, "ok", [op], 1))
