@@ -22,8 +22,7 @@ def review(asm, op: Operation, outcome: str, ops: list[Operation], i: int):
     off, limit = 0.0, math.inf
     if asm.strategy.scans:
         off = math.inf if lost else math.dist(o.at, op.expect.at)
-        # a rod's pushes scatter more (pivot, path): re-aiming absorbs up to L/4
-        limit = max(opts.replan_after, o.length / 4) if o.kind == "rod" else opts.replan_after
+        limit = courses.off_course_limit(opts, o)
     # an object whose pushes fail, or leave it far off course, again and again
     # (stuck, or against something nobody sees) is not pushed for ever; a rod's
     # course is replanned as a matter of course (its pushes scatter), so for a rod
@@ -75,7 +74,7 @@ def shoved_back(asm, ops: list[Operation], i: int, corrections: dict[str, int]) 
     `device` seed 6's rod slot and four particle slots after a replan of the rod that had
     shoved a particle 124 nm, and gained seed 9's s7 (``bench/RESULTS_rods.md``)."""
     ctx = asm.ctx
-    shoved, ctx.shoved = ctx.shoved, {}
+    shoved, ctx.shoved = ctx.shoved, set()
     plan = asm.replanner.plan or asm.first_plan
     slot = {a.object: a.target for a in plan.assignment}
     for oid in sorted(shoved):

@@ -43,9 +43,8 @@ class RunContext:
     in the layout frame and ``env_objects`` what it showed (neither kept in
     checkpoints: a run log holds them). ``corrected``: a relocalisation moved believed
     objects since the plan was last made (the plan is made again after the push);
-    ``shoved``: neighbours a push shoved, located again since, each with how far (nm) from
-    where it was believed (:mod:`.shoves`; the run's loop brings placed ones back; neither
-    kept in checkpoints).
+    ``shoved``: neighbours a push shoved, located again since (:mod:`.shoves`; the run's
+    loop brings placed ones back; neither kept in checkpoints).
     ``pivots``: every pushed rod's pose-and-pivot-offset filter. ``baselines``: the
     calibration's free-air maps A(i, j), B(i, j) the push monitor compensates with (not in
     checkpoints: the instrument's, given again on resuming). ``surveyed``: windows (layout
@@ -69,7 +68,7 @@ class RunContext:
     full_scan: Any = None
     env_objects: tuple = ()
     corrected: bool = False
-    shoved: dict[str, float] = field(default_factory=dict)
+    shoved: set[str] = field(default_factory=set)
     pivots: Pivots = field(default_factory=Pivots)
     baselines: Any = None               # the detector's BaselineMaps (eq. 3.28-3.29); None: free air
     surveyed: list = field(default_factory=list)

@@ -98,6 +98,13 @@ def course_clear(o: Body, upcoming_starts: dict[int, tuple], rest: list[Operatio
     return True
 
 
+def off_course_limit(options, o) -> float:
+    """How far (nm) a push may leave object ``o`` from where the plan expects it before
+    the rest is planned again (``options``: the run's ExecOptions): ``replan_after``; a
+    rod's pushes scatter more (pivot, path), and re-aiming absorbs up to L/4."""
+    return max(options.replan_after, o.length / 4) if o.kind == "rod" and o.length else options.replan_after
+
+
 def tight(layout: Layout):
     """A tolerance tighter than the layout's: correct what would be borderline."""
     t = layout.tolerance

@@ -25,6 +25,7 @@ import shapely
 from shapely.ops import nearest_points
 
 from .context import RunContext
+from .course import off_course_limit
 from .engine import Msg
 from .scan_steps import locate
 
@@ -61,23 +62,19 @@ def overlapping(ctx: RunContext, obj_id: str, exclude=()) -> list[tuple[str, np.
 def after_push(ctx: RunContext, op, body, pending=()):
     """After the push ``op`` whose scan after found its object at ``body`` (layout frame):
     :func:`look_at_shoved`, unless the push left it off course by more than the run
-    replans at (``replan_after``; a rod's L/4, as :func:`~.after_push.review`). Such a
+    replans at (:func:`~.course.off_course_limit`). Such a
     push went astray, slipped or was struck by a drift jump, and its object's place
     says nothing of a shove: in ``allpushed`` seed 9 with a 300 nm jump at 750 s, a push
     149 nm off course "shoved" o2, and o2 located again within the jumped estimate was
     another particle, which the jump's recheck then could not set right (7 of 9 slots)."""
-    limit = ctx.options.replan_after
-    if body.kind == "rod" and body.length:
-        limit = max(limit, body.length / 4)
-    if math.dist(body.at, op.expect.at) <= limit:
+    if math.dist(body.at, op.expect.at) <= off_course_limit(ctx.options, body):
         yield from look_at_shoved(ctx, op.object, pending)
 
 
 def look_at_shoved(ctx: RunContext, obj_id: str, exclude=()):
     """Locate again each neighbour the push of ``obj_id`` shoved (:func:`overlapping`;
     ``exclude``: objects whose belief is not yet where their own push left them) and keep
-    what the scans found; each found is added to ``ctx.shoved`` with how far it was found
-    from where it was believed. Returns their ids."""
+    what the scans found; each found is added to ``ctx.shoved``. Returns their ids."""
     found_ids = []
     for oid, shift in overlapping(ctx, obj_id, exclude):
         old = ctx.belief[oid]
@@ -92,8 +89,8 @@ def look_at_shoved(ctx: RunContext, obj_id: str, exclude=()):
         scanner, cov, t = found[:3]
         seen = ctx.to_layout(scanner, t)
         ctx.observe(oid, seen.at, t, cov, angle=seen.angle)
-        ctx.shoved[oid] = math.dist(old.at, seen.at)
+        ctx.shoved.add(oid)
         found_ids.append(oid)
-        yield Msg("event", (f"{oid}: shoved by the push of {obj_id}, found {ctx.shoved[oid]:.1f} nm from "
-                            f"where it was believed",), {"level": "warn"})
+        yield Msg("event", (f"{oid}: shoved by the push of {obj_id}, found {math.dist(old.at, seen.at):.1f} nm "
+                            f"from where it was believed",), {"level": "warn"})
     return found_ids

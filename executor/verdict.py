@@ -173,9 +173,7 @@ def check_slots(ctx: RunContext, layout: Layout, assignment, only=None, previous
                 continue
             # the estimate stood: the slot once more, the creep of the travel here settled
             # and the estimate fresh from that reference
-            second = out[todo[k]] = yield from _check_slot(ctx, target, obj, layout.tolerance)
-            yield Msg("event", (f"slot {target.id} checked again after a drift reference: {second.state}"
-                                + ("" if second.error is None else f" ({second.error:.1f} nm)"),))
+            out[todo[k]] = yield from _second_look(ctx, target, obj, layout, f"slot {target.id}")
         else:
             break
     return tuple(out)
@@ -191,19 +189,25 @@ def _near_edge(target, verdict, layout: Layout) -> bool:
 
 
 def _look_again(ctx: RunContext, target, obj: str | None, layout: Layout, first) -> Any:
-    """A rod slot :func:`_near_edge`: a drift reference measured near it, then the slot
-    scanned once more, the creep of the travel to it settled; the second look is the
-    verdict (plan stub; without drift references, the second look alone). ``rods`` seed 5
-    on dcdd462: the one look put a shoved rod 16.4 nm from its slot where it lay 20.9 nm
-    off. Over ``rods``, ``mixed``, ``device`` and ``rodgap`` (seeds 1-10, dcdd462) the error
-    a check measured differed from the true one by up to 10 nm at a rod slot (6 nm at the
-    90th percentile), 6 nm at a particle slot (3.6)."""
+    """A rod slot :func:`_near_edge`: a drift reference measured near it, then
+    :func:`_second_look` (plan stub; without drift references, the second look alone).
+    ``rods`` seed 5 on dcdd462: the one look put a shoved rod 16.4 nm from its slot where
+    it lay 20.9 nm off. Over ``rods``, ``mixed``, ``device`` and ``rodgap`` (seeds 1-10,
+    dcdd462) the error a check measured differed from the true one by up to 10 nm at a
+    rod slot (6 nm at the 90th percentile), 6 nm at a particle slot (3.6)."""
     if ctx.drift.uses_landmarks:
         yield from take_reference(ctx, target.at, obj, force=True)
+    return (yield from _second_look(ctx, target, obj, layout, f"slot {target.id}: filled {first.error:.1f} nm "
+                                    f"off, beyond {tight(layout).position:.0f} nm;"))
+
+
+def _second_look(ctx: RunContext, target, obj: str | None, layout: Layout, why: str) -> Any:
+    """The slot scanned once more, the creep of the travel to it settled (and the estimate
+    fresh from a reference, where the run measures them); the second look is the verdict,
+    said in an event that begins with ``why`` (plan stub)."""
     second = yield from _check_slot(ctx, target, obj, layout.tolerance)
     after = " after a drift reference" if ctx.drift.uses_landmarks else ""
-    yield Msg("event", (f"slot {target.id}: filled {first.error:.1f} nm off, beyond {tight(layout).position:.0f} "
-                        f"nm; checked again{after}: {second.state}"
+    yield Msg("event", (f"{why} checked again{after}: {second.state}"
                         + ("" if second.error is None else f" ({second.error:.1f} nm)"),))
     return second
 
