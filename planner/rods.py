@@ -239,6 +239,16 @@ def _rotation_sweep(space: FreeSpace, a: Body, b: Body, clearance: float | None,
 EXPANSIONS_PER_UNIT = 1500
 #: The legs along an SE(2) path share this many times the direct search's budget.
 LEG_SHARE = 3
+#: The lattice search is weighted A* (pushes so far plus ``weight`` times the pushes a
+#: sideways walk would still take): the greedy weight finds a way soonest. With
+#: ``PlanOptions.rod_search = "refine"``, toward a slot not enclosed by fixed things, a way
+#: it found is searched again with the less greedy ``SEARCH_WEIGHT``, within
+#: ``REFINE_EXPANSIONS`` and for fewer pushes only, and the shorter kept: fewer pushes on
+#: ``rods`` and ``mixed``, but slots lost on ``rodgap`` and the bowtie, so not the default
+#: (bench/RESULTS_rods.md, 2026-12-07)
+GREEDY_WEIGHT = 2.0
+SEARCH_WEIGHT = 1.2
+REFINE_EXPANSIONS = EXPANSIONS_PER_UNIT // 2
 
 
 #: A rod found touching fixed things is pushed off them first by a swing of one of
@@ -292,6 +302,9 @@ class RodController:
         self.offsets: dict[str, float] = {}
         #: search expansions left to the present phase
         self.allowance = Budget(0, math.inf, "rod search")
+        #: whether a way found is searched again less greedily (set by :meth:`pushes`:
+        #: ``PlanOptions.rod_search = "refine"``, not toward a slot enclosed by fixed things)
+        self.refine = False
 
     # -- macros ---------------------------------------------------------------------
     def _macros(self, rod: Body) -> tuple[list[Macro], list[Macro]]:
@@ -345,7 +358,20 @@ class RodController:
     # -- search ---------------------------------------------------------------------
     def _search(self, rod: Body, goal: Body, near_pos: float, near_ang: float
                 ) -> list[RodPush] | None:
-        """Weighted A* over far macros (cost: pushes) to within (near_pos, near_ang)."""
+        """Pushes to within (near_pos, near_ang) of ``goal``: the greedy search's way, or
+        (:attr:`refine`) the less greedy search's if that finds a shorter one within its
+        own expansions (not counted in the phase's allowance)."""
+        found = self._astar(rod, goal, near_pos, near_ang, GREEDY_WEIGHT, self.max_expansions)
+        if found is None or not self.refine or len(found) <= 1:
+            return found
+        shorter = self._astar(rod, goal, near_pos, near_ang, SEARCH_WEIGHT, REFINE_EXPANSIONS, within=len(found))
+        return shorter if shorter is not None else found
+
+    def _astar(self, rod: Body, goal: Body, near_pos: float, near_ang: float, weight: float, most: int,
+               within: int | None = None) -> list[RodPush] | None:
+        """Weighted A* over far macros (cost: pushes) to within (near_pos, near_ang).
+        ``within``: a search for fewer pushes than that (it spends none of the
+        allowance and leaves the failure's account alone)."""
         far, _ = self._macros(rod)
         phi = math.radians(self.options.rod_swing)
         lateral = 0.24 * phi * rod.length                   # sideways per push, walking
@@ -353,7 +379,7 @@ class RodController:
 
         def h(x: float, y: float, a: float) -> float:
             d = math.dist((x, y), goal.at)
-            return 2.0 * max(d / lateral, abs(math.remainder(goal.angle - a, 180.0)) / self.options.rod_swing)
+            return weight * max(d / lateral, abs(math.remainder(goal.angle - a, 180.0)) / self.options.rod_swing)
 
         def key(x: float, y: float, a: float) -> tuple:
             return (round(x / cell), round(y / cell), round((a % 180.0) / 6.0) % 30)
@@ -367,9 +393,9 @@ class RodController:
         closed: set[tuple] = set()
         expansions = 0
         nearest = (h(*rod.at, rod.angle), rod)        # the pose with the fewest pushes left, by h
-        while heap and expansions < self.max_expansions and not self.allowance.exhausted():
+        while heap and expansions < most and not self.allowance.exhausted():
             f, g, _, pose, k, parent, macro = heapq.heappop(heap)
-            if k in closed:
+            if k in closed or (within is not None and g >= within):
                 continue
             trail = None
             if parent is not None:
@@ -388,7 +414,8 @@ class RodController:
                     pushes[:0] = step
                 return pushes
             expansions += 1
-            self.allowance.spend()
+            if within is None:
+                self.allowance.spend()
             c, s = _unit(pose.angle)
             px, py, pa = pose.at[0], pose.at[1], pose.angle
             for m, (mx, my, ma) in zip(far, ends):
@@ -402,7 +429,8 @@ class RodController:
                     continue
                 counter += 1
                 heapq.heappush(heap, (g + m.size + h(x, y, a), g + m.size, counter, (x, y, a), ck, (pose, trail), m))
-        self._nearest, self._sought = nearest[1], goal
+        if within is None:
+            self._nearest, self._sought = nearest[1], goal
         return None
 
     def _finish(self, rod: Body, goal: Body, budget: int) -> tuple[list[RodPush], Body, bool]:
@@ -521,6 +549,7 @@ class RodController:
         # would have to turn the rod where it has no room to; a slot with room, the direct
         # search and one SE(2) path as ever: a slot no rod reaches is tried again at every
         # replan, and the walk does not help there)
+        self.refine = self.options.rod_search == "refine" and not enclosed
         first = 0.0 if cramped else None
         tries = [(first, enclosed, True)]
         if enclosed:
