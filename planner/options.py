@@ -63,13 +63,13 @@ class PlanOptions:
         pushes a run, rodgap 101 -> 133 and 3.4 -> 9.6 min of wall time, mixed one slot
         fewer (bench/RESULTS_rods.md).
     rod_search : str
-        A rod's lattice search (weighted A*): ``greedy`` (the default), or ``refine``: a
-        way it found toward a slot not enclosed by fixed things is searched again less
-        greedily for fewer pushes. Over 10 seeds (2026-12-07) pushes per rod 22 -> 17 on
-        rods and 26 -> 24 on mixed, rod time per slot 186.5 -> 155.8 s and 299 -> 272 s;
-        device unchanged (its slots are enclosed); but rodgap 30/30 -> 29/30 rod slots
-        and the bowtie example 70/70 -> 66/70 slots over --seed 1-10
-        (bench/RESULTS_rods.md).
+        A rod's lattice search (weighted A*): ``greedy`` (the default), or ``refine``: the
+        way the direct search found toward a slot not enclosed by fixed things is searched
+        again less greedily for fewer pushes (legs along an SE(2) path are not: refined,
+        they lost the bowtie's rod slot on 3 of 10 seeds). Over 10 seeds (2026-12-07) pushes
+        per rod 22 -> 17 on rods and 26 -> 24 on mixed, rod time per slot 186.5 -> 155.8 s
+        and 299 -> 271 s; device unchanged (its slots are enclosed), the bowtie 70/70 over
+        --seed 1-10; but rodgap loses a rod slot (bench/RESULTS_rods.md).
     align : str
         How a layout with alignment marks is registered to the scan before planning
         (:mod:`nanoasm.planner.alignment`): ``rigid`` (rotation and translation),
@@ -91,8 +91,8 @@ class PlanOptions:
                                   "pushed end", lo=0.0, hi=0.3)
     rod_direct: str = param("always", "", "a rod's direct search first: always, or only when its straight "
                             "way is clear (faster first plans, more pushes)", choices=("always", "clear"))
-    rod_search: str = param("greedy", "", "a rod's lattice search: greedy, or refine (a way found searched again "
-                            "less greedily for fewer pushes, where the slot is not between fixed things)",
+    rod_search: str = param("greedy", "", "a rod's lattice search: greedy, or refine (the direct search's way searched "
+                            "again less greedily for fewer pushes, where the slot is not between fixed things)",
                             choices=("greedy", "refine"))
     align: str = param("rigid", "", "registration of a layout with marks: rigid, similarity (scale too) or none",
                        choices=ALIGNS)

@@ -241,10 +241,10 @@ EXPANSIONS_PER_UNIT = 1500
 LEG_SHARE = 3
 #: The lattice search is weighted A* (pushes so far plus ``weight`` times the pushes a
 #: sideways walk would still take): the greedy weight finds a way soonest. With
-#: ``PlanOptions.rod_search = "refine"``, toward a slot not enclosed by fixed things, a way
-#: it found is searched again with the less greedy ``SEARCH_WEIGHT``, within
-#: ``REFINE_EXPANSIONS`` and for fewer pushes only, and the shorter kept: fewer pushes on
-#: ``rods`` and ``mixed``, but slots lost on ``rodgap`` and the bowtie, so not the default
+#: ``PlanOptions.rod_search = "refine"``, toward a slot not enclosed by fixed things, the
+#: way the direct search found is searched again with the less greedy ``SEARCH_WEIGHT``,
+#: within ``REFINE_EXPANSIONS`` and for fewer pushes only, and the shorter kept: fewer
+#: pushes on ``rods`` and ``mixed``, but a slot lost on ``rodgap``, so not the default
 #: (bench/RESULTS_rods.md, 2026-12-07)
 GREEDY_WEIGHT = 2.0
 SEARCH_WEIGHT = 1.2
@@ -646,6 +646,8 @@ class RodController:
             first = self._leg(rod, goal, near_pos, near_ang) if direct else None
             direct_why = (f"the direct search found no way ({self._stuck()})" if direct and first is None
                           else None)
+            self.refine = False         # the direct search's way only: refined legs along an SE(2)
+            #                             path lost the bowtie's rod slot on 3 of 10 seeds
             if first is None:
                 self.allowance = Budget.of(self.options, EXPANSIONS_PER_UNIT, what, share=LEG_SHARE)
                 # the full clearance along the SE(2) path: a rod's end strays ~15 nm per 2°

@@ -66,24 +66,61 @@ def test_the_less_greedy_search_finds_shorter_ways_and_spends_none_of_the_allowa
     assert total["ours"] < total["again"] < total["greedy"]
 
 
+def _refined(monkeypatch) -> list[int]:
+    """Record the pushes bound of every search for a shorter way."""
+    calls: list[int] = []
+    real = RodController._astar
+
+    def astar(self, *a, within=None, **k):
+        if within is not None:
+            calls.append(within)
+        return real(self, *a, within=within, **k)
+    monkeypatch.setattr(RodController, "_astar", astar)
+    return calls
+
+
 @pytest.mark.parametrize("opts", [REFINE, OPTS])
-def test_open_space_plans_reach_their_slots(opts):
+def test_open_space_plans_reach_their_slots(opts, monkeypatch):
     """The whole plans of the same eight rods (the search, then the last pushes) reach
     their slots; the ways are searched again with ``refine`` only."""
+    calls = _refined(monkeypatch)
     for start, goal in _cases(8, 3):
+        calls.clear()
         pushes, end, ok, ctrl = _plan(start, goal, [], opts)
-        assert ok and ctrl.refine == (opts.rod_search == "refine") and (opts is REFINE or not ctrl.refine)
-        assert math.dist(end.at, goal.at) <= 6.0 and len(pushes) <= 12
+        assert ok and math.dist(end.at, goal.at) <= 6.0 and len(pushes) <= 12
+        assert bool(calls) == (opts is REFINE)
 
 
 @pytest.mark.parametrize("gap", [1200.0, 3000.0])
-def test_a_slot_between_electrodes_is_not_searched_again(gap):
+def test_a_slot_between_electrodes_is_not_searched_again(gap, monkeypatch):
     """Two pads either side of a 1000 nm rod's slot along its axis: 1200 nm apart the slot
     has no room to line the rod up in and the greedy way stands; 3000 nm apart it has,
     and the way is searched again."""
+    calls = _refined(monkeypatch)
     goal = Body("g", "rod", (3000.0, 3000.0), D, 0.0, L)
     start = Body("r", "rod", (3000.0, 1800.0), D, 30.0, L)
     pads = [(shapely.box(3000.0 + s * gap / 2, 2700.0, 3000.0 + s * (gap / 2 + 500.0), 3300.0), 0.0)
             for s in (-1, 1)]
-    *_, ctrl = _plan(start, goal, pads)
-    assert ctrl.refine == (gap > 2000.0)
+    _plan(start, goal, pads)
+    assert bool(calls) == (gap > 2000.0)
+
+
+def test_legs_along_an_se2_path_are_not_searched_again(monkeypatch):
+    """A wall between a rod and its slot, the direct search skipped (``rod_direct =
+    "clear"``): the legs along the SE(2) path keep the greedy ways even with ``refine``
+    (refined legs lost the bowtie's rod slot on three of ten seeds)."""
+    calls = _refined(monkeypatch)
+    legs: list[int] = []
+    real = RodController._search
+
+    def search(self, *a, **k):
+        legs.append(1)
+        return real(self, *a, **k)
+    monkeypatch.setattr(RodController, "_search", search)
+    opts = PlanOptions(rod_direct="clear", rod_search="refine")
+    start = Body("r", "rod", (1000.0, 2000.0), 50.0, 90.0, 539.0)
+    goal = Body("g", "rod", (3000.0, 2000.0), 50.0, 90.0, 539.0)
+    wall = shapely.box(1950.0, 1400.0, 2050.0, 2600.0)
+    free = FreeSpace((4000.0, 4000.0), [(wall, 0.0)], {"r": start}, clearance=opts.clearance)
+    RodController(free, opts, 6.0, 0.9).pushes(start, goal)
+    assert legs and not calls
