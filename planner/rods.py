@@ -302,9 +302,6 @@ class RodController:
         self.offsets: dict[str, float] = {}
         #: search expansions left to the present phase
         self.allowance = Budget(0, math.inf, "rod search")
-        #: whether a way found is searched again less greedily (set by :meth:`pushes`:
-        #: ``PlanOptions.rod_search = "refine"``, not toward a slot enclosed by fixed things)
-        self.refine = False
 
     # -- macros ---------------------------------------------------------------------
     def _macros(self, rod: Body) -> tuple[list[Macro], list[Macro]]:
@@ -356,13 +353,13 @@ class RodController:
         return math.hypot(goal.at[0] - rod.at[0], goal.at[1] - rod.at[1], ang * scale)
 
     # -- search ---------------------------------------------------------------------
-    def _search(self, rod: Body, goal: Body, near_pos: float, near_ang: float
+    def _search(self, rod: Body, goal: Body, near_pos: float, near_ang: float, refine: bool = False
                 ) -> list[RodPush] | None:
         """Pushes to within (near_pos, near_ang) of ``goal``: the greedy search's way, or
-        (:attr:`refine`) the less greedy search's if that finds a shorter one within its
-        own expansions (not counted in the phase's allowance)."""
+        (``refine``) the less greedy search's if that finds a shorter one within its own
+        expansions (not counted in the phase's allowance)."""
         found = self._astar(rod, goal, near_pos, near_ang, GREEDY_WEIGHT, self.max_expansions)
-        if found is None or not self.refine or len(found) <= 1:
+        if found is None or not refine or len(found) <= 1:
             return found
         shorter = self._astar(rod, goal, near_pos, near_ang, SEARCH_WEIGHT, REFINE_EXPANSIONS, within=len(found))
         return shorter if shorter is not None else found
@@ -519,10 +516,11 @@ class RodController:
             rod = step[-1].pose
         return out, rod, self._done(rod, goal, self.pos_tol, self.ang_tol)
 
-    def _leg(self, rod: Body, goal: Body, near_pos: float, near_ang: float) -> list[RodPush] | None:
+    def _leg(self, rod: Body, goal: Body, near_pos: float, near_ang: float, refine: bool = False
+             ) -> list[RodPush] | None:
         if self._done(rod, goal, near_pos, near_ang):
             return []
-        return self._search(rod, goal, near_pos, near_ang)
+        return self._search(rod, goal, near_pos, near_ang, refine)
 
     def pushes(self, rod: Body, goal: Body, max_pushes: int = 80) -> tuple[list[RodPush], Body, bool]:
         """Pushes from ``rod`` to ``goal``; returns them, the final pose, success.
@@ -549,7 +547,10 @@ class RodController:
         # would have to turn the rod where it has no room to; a slot with room, the direct
         # search and one SE(2) path as ever: a slot no rod reaches is tried again at every
         # replan, and the walk does not help there)
-        self.refine = self.options.rod_search == "refine" and not enclosed
+        # the direct search's way searched again for fewer pushes (PlanOptions.rod_search),
+        # not toward an enclosed slot, nor the legs along an SE(2) path: refined, they lost
+        # the bowtie's rod slot on 3 of 10 seeds
+        refine = self.options.rod_search == "refine" and not enclosed
         first = 0.0 if cramped else None
         tries = [(first, enclosed, True)]
         if enclosed:
@@ -557,7 +558,8 @@ class RodController:
             tries += [(first, False, False)]
         found, why = None, []
         for clearance, approach, direct in tries:
-            again = self._pushes(rod, goal, max_pushes, clearance, approach=approach, direct=direct)
+            again = self._pushes(rod, goal, max_pushes, clearance, approach=approach, direct=direct,
+                                 refine=refine)
             if again[2]:
                 self.failure = None
                 return again
@@ -631,7 +633,8 @@ class RodController:
         return [w for _, w in found]
 
     def _pushes(self, rod: Body, goal: Body, max_pushes: int, clearance: float | None,
-                approach: bool = False, direct: bool = True) -> tuple[list[RodPush], Body, bool]:
+                approach: bool = False, direct: bool = True, refine: bool = False
+                ) -> tuple[list[RodPush], Body, bool]:
         near_pos = 0.3 * math.radians(self.options.rod_swing) * rod.length
         near_ang = self.options.rod_swing / 2
         try:
@@ -643,11 +646,9 @@ class RodController:
             # spends its whole budget before it gives up
             direct = direct and (self.options.rod_direct == "always"
                                  or swept_free(self.space, rod, goal, rod.id, clearance, self.exempt))
-            first = self._leg(rod, goal, near_pos, near_ang) if direct else None
+            first = self._leg(rod, goal, near_pos, near_ang, refine) if direct else None
             direct_why = (f"the direct search found no way ({self._stuck()})" if direct and first is None
                           else None)
-            self.refine = False         # the direct search's way only: refined legs along an SE(2)
-            #                             path lost the bowtie's rod slot on 3 of 10 seeds
             if first is None:
                 self.allowance = Budget.of(self.options, EXPANSIONS_PER_UNIT, what, share=LEG_SHARE)
                 # the full clearance along the SE(2) path: a rod's end strays ~15 nm per 2°

@@ -56,9 +56,8 @@ def test_the_less_greedy_search_finds_shorter_ways_and_spends_none_of_the_allowa
         for start, goal in _cases(8, 3):
             free = FreeSpace((6000.0, 6000.0), [], {"r": start}, clearance=OPTS.clearance)
             ctrl = RodController(free, OPTS, 6.0, 0.9)
-            ctrl.refine = refine
             ctrl.allowance = rods.Budget(10_000, math.inf, "test")
-            way = ctrl._search(start, goal, 50.0, 10.0)
+            way = ctrl._search(start, goal, 50.0, 10.0, refine)
             found[name].append((len(way), ctrl.allowance.used))
     assert all(a[1] == b[1] > 0 for a, b in zip(found["ours"], found["greedy"]))
     assert all(a[0] <= b[0] for a, b in zip(found["ours"], found["greedy"]))

@@ -11,6 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+import pytest
 from simkit import particle, rod, world
 
 from nanoasm.bodies import Body
@@ -23,10 +24,10 @@ from nanoasm.executor.documents import EVENT
 from nanoasm.executor.engine import RunEngine
 from nanoasm.executor.estimators import NoDrift
 from nanoasm.executor.references import References
-from nanoasm.executor.shoves import OVERLAP, look_at_shoved, overlapping
+from nanoasm.executor.shoves import OVERLAP, after_push, look_at_shoved, overlapping
 from nanoasm.executor.strategy import ExecOptions
 from nanoasm.planner import PlanOptions
-from nanoasm.planner.plan import Assignment, Plan
+from nanoasm.planner.plan import Assignment, Expect, Operation, Plan
 from nanoasm.world.environment import EnvObject, Environment
 
 ROD = dict(diameter=70.0, angle=0.0, length=600.0)
@@ -73,6 +74,22 @@ def test_a_shoved_rod_is_located_where_the_shove_left_it():
     assert found == ["r"] and ctx.shoved == {"r"}
     assert math.dist(ctx.belief["r"].at, (2025.0, 2000.0)) < 5.0
     assert any("r: shoved by the push of p" in e for e in events)
+
+
+@pytest.mark.parametrize("beyond", [False, True])
+def test_no_shove_is_looked_for_after_a_push_that_left_its_object_off_course(beyond):
+    """p found overlapping the rod after its push: the rod is looked for when p lies within
+    ``replan_after`` of where its push was to leave it, not when it lies beyond (such a
+    push went astray or met a drift jump, and says nothing of a shove)."""
+    truth = [particle((1670, 2000), d=90.0, id="p"), rod((2025, 2000), 0.0, 600.0, d=70.0, id="r")]
+    believed = _believed((1670.0, 2000.0))
+    sim = world(truth)
+    ctx = _ctx(believed, sim.config)
+    off = ctx.options.replan_after + (10.0 if beyond else -10.0)
+    op = Operation(1, "p", "s1", ((1500.0, 2000.0), (1670.0 - off, 2000.0)), Expect((1670.0 - off, 2000.0)))
+    RunEngine(sim, []).run(after_push(ctx, op, believed[0]))
+    assert ctx.shoved == (set() if beyond else {"r"})
+    assert (ctx.ledger.counts["local_scans"] == 0) == beyond
 
 
 def test_a_neighbour_clear_of_the_push_is_not_scanned():
