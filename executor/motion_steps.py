@@ -112,13 +112,24 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
     cfg = ctx.config
     if preload_factor != 1.0:
         cfg = replace(cfg, preload=min(cfg.preload * preload_factor, preload_cap(cfg, lever)))
+    switch = ctx.timing.switch_ahead()
+    if switch > 0.0:
+        # after scanning, the instrument switches into contact before the first write that
+        # touches down: lifted to the path's start first, so that the switch comes before
+        # the push, whose samples are then timed from its end (timed from before it, the
+        # drift folded into the path was that of ``switch`` seconds too early: 10-20 nm in
+        # 2 s of the creep after a long travel, all of a correction push's 15 nm)
+        t = yield Msg("clock")
+        lo, hi = cfg.lower[:2], cfg.upper[:2]
+        yield from travel_to(ctx, np.clip(np.asarray(op.tip_path[0], float) + ctx.offset(t), lo, hi))
     current = yield Msg("position")
     t0 = yield Msg("clock")
+    t_first = t0 + switch
     moves = operation(op.tip_path, push_speed=ctx.options.push_speed)
-    dac = plan_dac(moves, cfg, current, t0=t0, drift=ctx.drift.predicted(t0), lever=lever)
+    dac = plan_dac(moves, cfg, current, t0=t_first, drift=ctx.drift.predicted(t_first), lever=lever)
     pending = ctx.drift.pending_moves(dac, current, ctx.config)
     if pending:     # the path creeps as it goes (its travel, then the push): follow it
-        dac = plan_dac(moves, cfg, current, t0=t0, drift=ctx.drift.predicted(t0, pending), lever=lever)
+        dac = plan_dac(moves, cfg, current, t0=t_first, drift=ctx.drift.predicted(t_first, pending), lever=lever)
     monitor = PushMonitor(cfg.preload, lever=lever, force_limit=ctx.options.force_limit, baselines=ctx.baselines,
                           friction=ctx.options.substrate_friction)
     verdict = None
@@ -162,7 +173,9 @@ def stream_push(ctx: RunContext, op: Operation, lever: Cantilever, preload_facto
             break
     # what the instrument took beyond the samples streamed: the approach into contact
     t_end = yield Msg("clock")
-    ctx.ledger.times["mode_switch"] += max(t_end - t0 - (n_push + n_other) / cfg.sample_rate, 0.0)
+    extra = max(t_end - t0 - (n_push + n_other) / cfg.sample_rate, 0.0)
+    ctx.ledger.times["mode_switch"] += extra
+    ctx.timing.pushed(extra)
     if verdict is None:
         verdict = monitor.finish()
     if stop_at is not None and stop_angle is not None and abs(stop_angle.angle) >= capture:

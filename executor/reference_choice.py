@@ -156,13 +156,19 @@ def best(candidates) -> Candidate | None:
 class LineTiming:
     """What one local-scan line costs on this instrument: ``overhead + samples * per_sample``
     seconds, fitted by least squares to the lines scanned so far (defaults until two
-    different lengths were seen)."""
+    different lengths were seen); and ``approach``, the seconds a push's first write into
+    contact took beyond its samples after scanning (the switch into contact mode, 2 s on
+    the simulator), the mean of those seen so far (0 until one was), with ``tapping``:
+    whether the tip scanned since the last push, so that the next push switches."""
 
     n: int = 0
     s_x: float = 0.0
     s_y: float = 0.0
     s_xx: float = 0.0
     s_xy: float = 0.0
+    approach: float = 0.0
+    approaches: int = 0
+    tapping: bool = True
 
     def switched(self, samples: int, seconds: float) -> float:
         """What of a line of ``samples`` that took ``seconds`` was a mode switch before it:
@@ -201,9 +207,24 @@ class LineTiming:
         over, per = self.fit()
         return lines * over + samples * per
 
+    def switch_ahead(self) -> float:
+        """Seconds the next push's first sample is expected to wait for the switch into
+        contact: :attr:`approach` after scanning, else 0."""
+        return self.approach if self.tapping else 0.0
+
+    def pushed(self, extra: float) -> None:
+        """A push's write into contact took ``extra`` seconds beyond its samples: after
+        scanning, the switch into contact, folded into :attr:`approach`."""
+        if self.tapping and math.isfinite(extra) and extra >= 0.0:
+            self.approaches += 1
+            self.approach += (extra - self.approach) / self.approaches
+        self.tapping = False
+
     def state_dict(self) -> dict:
-        return {"n": self.n, "sums": [self.s_x, self.s_y, self.s_xx, self.s_xy]}
+        return {"n": self.n, "sums": [self.s_x, self.s_y, self.s_xx, self.s_xy],
+                "approach": [self.approach, self.approaches]}
 
     @classmethod
     def from_state(cls, state: dict) -> LineTiming:
-        return cls(int(state["n"]), *(float(v) for v in state["sums"]))
+        approach, k = state.get("approach", (0.0, 0))      # a checkpoint from before it was kept: unknown
+        return cls(int(state["n"]), *(float(v) for v in state["sums"]), float(approach), int(k))

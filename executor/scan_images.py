@@ -20,6 +20,7 @@ def scan_window(ctx: RunContext, pixels: int, region, what: str):
     t0 = yield Msg("clock")
     scan = yield Msg("full_scan", (pixels, tuple(float(v) for v in region)))
     t1 = yield Msg("clock")
+    ctx.timing.tapping = True
     ctx.ledger.times["local_scan"] += t1 - t0
     ctx.ledger.counts["local_scans"] += 1
     yield Msg("emit", (PROGRESS, ProgressDoc("local scan", f"{what}, {pixels} x {pixels} px, {t1 - t0:.1f} s")))

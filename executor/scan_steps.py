@@ -123,6 +123,7 @@ def scan_line(ctx: RunContext, a: np.ndarray, b: np.ndarray, n: int):
     switched = ctx.timing.switched(count, t - t0)
     ctx.ledger.times["mode_switch"] += switched          # the switch back to tapping before it
     ctx.timing.observe(count, t - t0)
+    ctx.timing.tapping = True
     if first:               # a switch to tapping delays the first line: the sample it saw is then
         ctx.scan_ref = t0 + switched
     ctx.drift.moved_to(ends[0], t0 + switched)

@@ -21,7 +21,8 @@ from nanoasm.executor.estimators import (
     estimator_from_state,
 )
 from nanoasm.executor.ledger import RunLedger
-from nanoasm.executor.motion_steps import travel_to
+from nanoasm.executor.motion_steps import stream_push, travel_to
+from nanoasm.executor.reference_choice import LineTiming
 from nanoasm.executor.references import References
 from nanoasm.executor.scan_steps import run_pattern, scan_line
 from nanoasm.executor.strategy import ExecOptions, Strategy
@@ -256,6 +257,64 @@ def test_travel_is_timed_as_travel_and_told_to_the_creep_model():
     assert len(steps) == 2 and ctx.drift.params.creep.min_step <= steps[0, 0] < 600.0
     assert steps[:, 0].sum() == pytest.approx(2000.0, abs=2.0) and np.allclose(steps[:, 1], 0.0)
     assert times[0] < times[1] == pytest.approx(fake.t, abs=2e-3)
+
+
+class SwitchingInstrument(FakeInstrument):
+    """The fake instrument, with the switch into contact the simulator makes: a write that
+    touches down after scanning waits ``switch`` seconds before its first sample."""
+
+    def __init__(self, config, switch=2.0):
+        super().__init__(config)
+        self.switch, self.tapping, self.writes = switch, True, []
+
+    def __call__(self, msg: Msg):
+        if msg.command == "scan_line":
+            self.tapping = True
+        if msg.command == "write":
+            contact = bool((self.config.codes_to_nm(np.asarray(msg.args[0]))[:, 2] <= 0.0).any())
+            if contact and self.tapping:
+                self.t += self.switch
+                self.tapping = False
+            block = super().__call__(msg)
+            self.writes.append((contact, float(block.t[0])))
+            return block
+        return super().__call__(msg)
+
+
+def test_a_push_after_scanning_is_timed_from_the_switch_into_contact(monkeypatch):
+    """The first push after a scan line learns what the switch into contact takes; the next
+    one travels to its start lifted, then writes the push timed from the switch's end, as
+    its samples play (before: from before the switch, the drift of 2 s too early)."""
+    import nanoasm.executor.motion_steps as steps
+    from nanoasm.world.cantilever import SEED_LEVER
+
+    planned = []
+
+    def plan_dac(*args, **kwargs):
+        planned.append(kwargs["t0"])
+        return dac_plan(*args, **kwargs)
+
+    dac_plan = steps.plan_dac
+    monkeypatch.setattr(steps, "plan_dac", plan_dac)
+    ctx, _ = _ctx()
+    fake = SwitchingInstrument(ctx.config)
+    push = _op(1, "a", (900.0, 1000.0), (1100.0, 1000.0))
+    for k in range(2):
+        drive(scan_line(ctx, np.array([45000.0, 45000.0]), np.array([45200.0, 45000.0]), 50), fake)
+        assert ctx.timing.tapping
+        fake.writes.clear()
+        planned.clear()
+        drive(stream_push(ctx, push, SEED_LEVER), fake)
+        assert not ctx.timing.tapping and ctx.timing.approach == pytest.approx(2.0, abs=1e-6)
+        touch = next(t for contact, t in fake.writes if contact)
+        if k == 0:      # unknown yet: timed from before the switch, one write
+            assert len(fake.writes) == 1 and planned[-1] < touch - 1.9
+        else:           # a lifted travel first, then the push timed as it plays
+            assert not fake.writes[0][0] and len(fake.writes) >= 2
+            assert planned[-1] == pytest.approx(touch, abs=2.0 / ctx.config.sample_rate)
+    state = ctx.timing.state_dict()
+    assert LineTiming.from_state(state).approach == pytest.approx(2.0)
+    assert LineTiming.from_state({"n": 0, "sums": [0, 0, 0, 0]}).approach == 0.0    # an older checkpoint
 
 
 def test_a_scan_line_beyond_the_range_reads_bare_substrate_there():

@@ -194,28 +194,29 @@ def test_a_push_gone_astray_in_a_drift_jump_is_found_by_the_survey_and_pushed_ho
 
 
 def test_an_object_lost_in_a_drift_jump_is_looked_for_where_its_pushes_went():
-    """allpushed seed 1, the jump at 700 s: the check scans miss o9 in s9, the survey of
-    that slot finds o9 is not where it was believed, the windows along its pushes find it
-    again (416 nm away), and the slot is filled. (Seed 4 at 750 s before the particles'
-    short after-scan made the runs shorter; seed 1 before the drift estimate learnt the
-    creep time constant; seed 5 at 900 s before contact legs: o4's neighbour o5 taken for
-    it, found 816 nm away.)"""
-    out, layout, events = _allpushed_jump(1, 700.0)
+    """allpushed seed 6, the jump at 800 s: the survey of a slot the check scans found empty
+    finds its particle o7 is not where it was believed, the windows along its pushes find it
+    again (584 nm away), and every slot is filled. (Seed 1 at 700 s before pushes were timed
+    from the switch into contact; seed 4 at 750 s before the particles' short after-scan made
+    the runs shorter; seed 1 before the drift estimate learnt the creep time constant; seed
+    5 at 900 s before contact legs: o4's neighbour o5 taken for it, found 816 nm away.)"""
+    out, layout, events = _allpushed_jump(6, 800.0)
     assert any("is not there" in t for t in events.texts), events.texts
     assert any("found again" in t for t in events.texts), events.texts
     assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
     assert sum(t.startswith("survey ") for t in events.texts) <= repair.MAX_WINDOWS
 
 
-@pytest.mark.parametrize("seed, sign", [(1, "slot s5: filled by o6"), (9, "survey 2")])
+@pytest.mark.parametrize("seed, sign", [(4, "slot s3: filled by o1"), (9, "survey 2")])
 def test_after_a_drift_jump_the_report_names_the_particle_in_each_slot(seed, sign):
     """allpushed, the jump at 750 s (``bench_drift_refs.py``'s jump case): every slot
-    filled in truth, and by the particles the report's assignment names. Seed 1: the
-    jump struck as o6's push into s5 ended, its after-scan put it onto o7's place and the
-    replan left s5 to no object; the check finds s5 filled and names o6, believed on
-    another particle (the report's assignment was 8 of 9). Seed 9: the survey took a
-    particle just pushed into its slot for the lost o8 and o8 for it, by plain distance;
-    relative to their gates it does not (7 of 9 with ``jump_recheck`` alone)."""
+    filled in truth, and by the particles the report's assignment names. Seed 4: the check
+    finds s3 filled by o1, no slot's object, believed on another particle 278 nm away, and
+    names it (seed 1 before pushes were timed from the switch into contact: o6 in s5, its
+    after-scan put onto o7's place by the jump; the report's assignment was 8 of 9). Seed
+    9: the survey took a particle just pushed into its slot for the lost o8 and o8 for it,
+    by plain distance; relative to their gates it does not (7 of 9 with ``jump_recheck``
+    alone)."""
     out, layout, events = _allpushed_jump(seed, 750.0)
     assert any(t.startswith(sign) for t in events.texts), events.texts
     slots = {t.id for t in layout.targets}
@@ -223,18 +224,19 @@ def test_after_a_drift_jump_the_report_names_the_particle_in_each_slot(seed, sig
 
 
 def test_no_repair_round_when_rounds_are_off():
-    """allpushed seed 1, the jump at 700 s (the run of the test above): with repair rounds
-    every slot is filled, without them 8 of 9, and the run says so. (Seed 2 at 750 s before
-    the particles' short after-scan made the runs shorter; seed 7 at 900 s before the drift
+    """allpushed seed 6, the jump at 800 s (the run of the lost-in-a-jump test above): with
+    repair rounds every slot is filled, without them 7 of 9, and the run says so. (Seed 1 at
+    700 s, 8 of 9, before pushes were timed from the switch into contact; seed 2 at 750 s before the
+    particles' short after-scan made the runs shorter; seed 7 at 900 s before the drift
     estimate learnt the creep time constant.)"""
-    scene, layout = family_case("allpushed", 1)
-    change = replace(scene.params.drift_change, jump=300.0, jump_at=700.0)
+    scene, layout = family_case("allpushed", 6)
+    change = replace(scene.params.drift_change, jump=300.0, jump_at=800.0)
     scene = replace(scene, params=replace(scene.params, drift_change=change))
     events = Events()
     out = dry_run(scene, layout, options=ExecOptions(strategy="full", repair_rounds=0, contact_batch=1),
                   subscribers=[events])
     assert not any(t.startswith("repair round") for t in events.texts)
-    assert len(out.truly_filled) == len(layout.targets) - 1 and not out.disagreements
+    assert len(out.truly_filled) == len(layout.targets) - 2 and not out.disagreements
 
 
 def test_the_bundled_dry_run_fills_six_slots_and_says_so():
