@@ -159,7 +159,8 @@ class LineTiming:
     different lengths were seen); and ``approach``, the seconds a push's first write into
     contact took beyond its samples after scanning (the switch into contact mode, 2 s on
     the simulator), the mean of those seen so far (0 until one was), with ``tapping``:
-    whether the tip scanned since the last push, so that the next push switches."""
+    whether the tip scanned since the last push, so that the next push switches (not kept
+    in checkpoints: a resumed run starts as after scanning)."""
 
     n: int = 0
     s_x: float = 0.0
