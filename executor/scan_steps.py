@@ -304,8 +304,12 @@ def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=Non
     if assoc.kind == "new":
         new = ctx.belief.add_new(o.kind, at, height if height is not None else o.diameter, o, t,
                                  ctx.drift.observation_cov(t, cov))
+        rod = ctx.belief[new].kind != "particle"
+        if rod:     # its length and angle are the rod's looked for, not seen: an obstacle, never assigned
+            ctx.ledger.given_up.add(new)
         yield Msg("event", (f"{new}: a new object at ({at[0]:.0f}, {at[1]:.0f}) nm, "
-                            f"{height if height is not None else o.diameter:.0f} nm high",), {"level": "warn"})
+                            f"{height if height is not None else o.diameter:.0f} nm high"
+                            + (": an obstacle" if rod else ""),), {"level": "warn"})
         return False
     if assoc.kind == "other" or not resolve:
         return assoc.kind == "ambiguous" and _nearer(me, others, assoc.others, at)

@@ -11,7 +11,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from simkit import SteadyDrift, particle, world
+from simkit import SteadyDrift, particle, rod, world
 
 from nanoasm.bodies import Body
 from nanoasm.executor.association import Candidate, associate, size_ok
@@ -427,3 +427,21 @@ def test_a_push_the_tip_lost_in_a_later_leg_leaves_its_object_where_that_leg_beg
     _, ctx, _ = _run([particle((1000, 1000), d=90.0, id="a")], {"a": (1000.0, 1000.0, 90.0)},
                      lambda ctx: pushing.press(ctx, op, start, Course(), None, PlanOptions()))
     assert ctx.belief["a"].at == seen_at
+
+
+def test_something_new_seen_while_looking_for_a_rod_is_an_obstacle_never_assigned():
+    # a rod's scan sees something 700 nm from where the rod is believed, where nothing is
+    # believed: a new object, whose length and angle would only be the rod's looked for
+    # (device seed 2 on 2e65012: such a copy took the rod slot from the rod the run still
+    # knew, and the slot got "no path")
+    from nanoasm.executor.scan_lines import LocalScanResult
+    from nanoasm.executor.scan_steps import identify
+
+    res = LocalScanResult("rod_after", True, "found", centre=(2700.0, 2000.0), cov=np.eye(2) * 4.0,
+                          angle=30.0, length=600.0)
+    believed = [EnvObject("r", "rod", (2000.0, 2000.0), 60.0, 30.0, 600.0)]
+    ok, ctx, events = _run([], believed, lambda ctx: identify(ctx, "r", res, (2700.0, 2000.0), 150.0))
+    assert not ok and any("new1: a new object" in e and "an obstacle" in e for e in events), events
+    assert ctx.belief["new1"].kind == "rod" and "new1" in ctx.ledger.given_up
+    env = {o.id: o for o in ctx.environment().objects}
+    assert env["new1"].confidence == 0.0 and env["r"].confidence > 0.0
