@@ -163,6 +163,22 @@ def gaps(belief, marks, cands) -> np.ndarray:
     return out
 
 
+def spots_room(belief, first: dict, ids: list, jump: np.ndarray) -> dict:
+    """Each object's room (nm) about where it is looked for on either side of a tear: the
+    least gap from its position in the full scan, and that less and plus the jump, to any
+    other object's footprint there."""
+    others = [oid for oid in first if oid in belief.objects]
+    at = np.array([first[oid][0] for oid in others], float).reshape(-1, 2)
+    radius = np.array([belief[oid].radius for oid in others])
+    out = {}
+    for rid in ids:
+        mine = np.array([oid != rid for oid in others])
+        p = np.asarray(first[rid][0], float)
+        gaps = [np.hypot(*(at[mine] - spot).T) - radius[mine] for spot in (p, p - jump, p + jump)]
+        out[rid] = float(min((g.min() for g in gaps if g.size), default=np.inf))
+    return out
+
+
 def early_choice(scan, now: float, cands, var: float):
     """Of ``cands`` (``(pick, τ of its row, room nm)``), the one whose two components
     measured ``now`` (s after the epoch) would shrink the largest σ of the drift since the

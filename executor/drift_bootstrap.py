@@ -13,13 +13,13 @@ import numpy as np
 
 from nanoasm.drift import gate_threshold
 
-from . import bootstrap_picks, creep_terms, tear_doubles
+from . import bootstrap_confirm, bootstrap_picks, creep_terms, tear_doubles
 from .context import RunContext
 from .drift_steps import emit_drift, scan_feature_lines
 from .engine import Msg
 from .scan_consensus import left_out
 from .scan_drift import JUMP_GATE
-from .scan_jump import scanned_before, tear_band
+from .scan_jump import jump_text, scanned_before, tear_band
 from .scan_steps import locate
 
 #: Objects scanned again to find the drift velocity from the full scan's skew.
@@ -104,9 +104,16 @@ def bootstrap(ctx: RunContext):
     def scan_more(source=order, enough=None, widen=True):
         """Scan the picks in order until enough references measured the model."""
         for kind, rid, seen_t in source:
-            scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t, widen)
-            if scanned is not None:
+            searched: set = set()
+            scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t, widen, searched)
+            # what only a widened search found: confirmed by a second object, or refuted
+            second = (yield from bootstrap_confirm.confirm(ctx, picks, rid, seen_t, scanned, _bootstrap_rows)
+                      ) if scanned is not None and rid in searched else ()
+            if scanned is not None and second is not None:
                 take(kind, rid, scanned)
+            if second:
+                picks.take(second[0])
+                take(*second[0][:2], second[1])
             if state["used"] >= (enough or (count if drift.velocity_known else 3 * BOOTSTRAP_OBJECTS)):
                 return
 
@@ -153,7 +160,8 @@ def bootstrap(ctx: RunContext):
     yield from _narrow_tear(ctx, picks, take)
     yield from _earliest_rows(ctx, picks, take)
     used, t_last = state["used"], state["t_last"]
-    yield from _jump_event(drift)
+    if (said := jump_text(drift.scan)) is not None:
+        yield Msg("event", (said,), {"level": "warn"})
     t_end = yield Msg("clock")
     ctx.ledger.purposes["bootstrap"] += t_end - t_start
     for oid, body, cov, t in seen_objects.values():   # by the scan's drift model, then the filter starts
@@ -244,7 +252,7 @@ def _narrow_tear(ctx: RunContext, picks, take):
         if not cands:
             return
         a, b = band
-        room = _spots_room(ctx, [c[1] for c in cands], scan.jump)
+        room = bootstrap_picks.spots_room(ctx.belief, ctx.refs.first_seen, [c[1] for c in cands], scan.jump)
         mid = 0.5 * (a + b)
         kind, rid, seen_t = pick = min(cands, key=lambda c: (room[c[1]] < TEAR_ROOM, abs(c[2] - ep - mid), c[1]))
         picks.take(pick)
@@ -325,51 +333,26 @@ def _measure(drift, scan, scanned, key) -> None:
         scan.measure(n, z, tau1, tau0, BOOTSTRAP_VAR + var, creep1=creep1, lam1=lam1, key=key)
 
 
-def _spots_room(ctx: RunContext, ids: list, jump: np.ndarray) -> dict:
-    """Each object's room (nm) about where it is looked for on either side of a tear: the
-    least gap from its position in the full scan, and that less and plus the jump, to any
-    other object's footprint there."""
-    first = ctx.refs.first_seen
-    others = [oid for oid in first if oid in ctx.belief.objects]
-    at = np.array([first[oid][0] for oid in others], float).reshape(-1, 2)
-    radius = np.array([ctx.belief[oid].radius for oid in others])
-    out = {}
-    for rid in ids:
-        mine = np.array([oid != rid for oid in others])
-        p = np.asarray(first[rid][0], float)
-        gaps = [np.hypot(*(at[mine] - spot).T) - radius[mine] for spot in (p, p - jump, p + jump)]
-        out[rid] = float(min((g.min() for g in gaps if g.size), default=np.inf))
-    return out
-
-
-def _jump_event(drift):
-    """Say what jump the bootstrap took into the model, if any."""
-    scan = drift.scan
-    if not scan.stepped:
-        return
-    jump, since = scan.jump, scan.tau_jump
-    std = math.sqrt(max(float(np.linalg.eigvalsh(scan.cov_j[-2:, -2:])[-1]), 0.0))
-    when = (f"during the full scan, about its row of {since + scan.epoch:.0f} s" if since < scan.tau_end
-            else f"after the full scan, before {since + scan.epoch:.0f} s")
-    yield Msg("event", (f"the drift jumped by {jump[0]:+.0f}, {jump[1]:+.0f} nm (± {std:.1f}) {when}: taken into "
-                        f"the model",), {"level": "warn"})
-
-
-def _bootstrap_rows(ctx: RunContext, kind: str, rid: str, seen_t: float, widen: bool = True):
+def _bootstrap_rows(ctx: RunContext, kind: str, rid: str, seen_t: float, widen: bool = True,
+                    searched: set | None = None, shift=None):
     """Scan one bootstrap reference again: ``(rows, time, seen)`` with rows of ``(n, z,
     τ now, τ then, creep now, var)`` (``z``: the component along ``n`` of the drift
     between, the nominal creep taken out; creep now: the nominal creep of every move so
     far, and what the scan lines' compensation makes of the amplitude's error; var: the
-    located position's variance along ``n``, the compensation's included), ``seen`` an object's sighting to record once the drift is
-    known; None when it was not found, or is not yet known well enough along its edge to
-    be scanned."""
+    located position's variance along ``n``, the compensation's included), ``seen`` an
+    object's sighting to record once the drift is known; None when it was not found, or
+    is not yet known well enough along its edge to be scanned. ``searched`` gets ``rid``
+    when only a widened search found it; ``shift``: an object looked for that far from its
+    place (:mod:`.bootstrap_confirm`)."""
     drift = ctx.drift
     ep = drift.epoch
     if kind == "object":
-        found = yield from locate(ctx, rid, widen=widen)
+        found = yield from locate(ctx, rid, widen=widen, resolve=shift is None, shift=shift)
         if found is None:
             return None
         body, cov, t, res = found
+        if searched is not None and res.pattern == "lost_particle":
+            searched.add(rid)
         # D(t) - D(τ) less the creep modelled now and then; the lines' compensation
         # erred by the creep amplitude's error times sens
         now = drift.creep_offset(t - ep)

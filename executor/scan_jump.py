@@ -113,3 +113,14 @@ def scanned_before(sd, after: float, count: int) -> list[tuple]:
     rows = {key: max(t0 for _, t0, _ in seen) for key, seen in sd._seen.items()
             if all(t1 < after for _, _, t1 in seen)}
     return sorted(rows.items(), key=lambda kv: -kv[1])[:count]
+
+
+def jump_text(scan) -> str | None:
+    """What jump the bootstrap took into the model ``scan``, said; None where it took none."""
+    if not scan.stepped:
+        return None
+    jump, since = scan.jump, scan.tau_jump
+    std = math.sqrt(max(float(np.linalg.eigvalsh(scan.cov_j[-2:, -2:])[-1]), 0.0))
+    when = (f"during the full scan, about its row of {since + scan.epoch:.0f} s" if since < scan.tau_end
+            else f"after the full scan, before {since + scan.epoch:.0f} s")
+    return f"the drift jumped by {jump[0]:+.0f}, {jump[1]:+.0f} nm (± {std:.1f}) {when}: taken into the model"

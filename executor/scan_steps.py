@@ -181,11 +181,12 @@ def _pose(o, centre, angle) -> Body:
                 angle if o.elongated else None, o.length if o.elongated else None)
 
 
-def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = True):
+def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = True, shift=None):
     """Local scan of an object where it is believed to be; widening search if missed
     (and ``widen``). What the scan found is associated with the belief
     (:func:`identify`; ``resolve``: an ambiguous sighting is resolved by scanning the
-    other candidates).
+    other candidates). ``shift`` (layout frame, nm): looked for that far from where it is
+    believed, as a hypothesis of where everything lies would put it.
 
     Returns (measured pose in the *scanner* frame, covariance, time, scan result) or
     None (lost, or not where expected). Convert with ``ctx.to_layout`` after any drift
@@ -195,19 +196,22 @@ def locate(ctx: RunContext, obj_id: str, *, widen: bool = True, resolve: bool = 
     t = yield Msg("clock")
     off = ctx.offset(t)
     r_max = ctx.r_max(t, obj_id)
-    at = ctx.position(obj_id) + off
+    believed = ctx.position(obj_id) + (0.0 if shift is None else np.asarray(shift, float))
+    at = believed + off
     if o.kind == "rod":
         pattern = rod_before(at, o.angle, o.length, o.diameter, r_max, measure_angle=True, options=ctx.scan_opts)
     else:
         half = o.radius + r_max + ctx.scan_opts.resolved(o.diameter).margin
-        direction = clear_direction(ctx, ctx.position(obj_id), half, exclude={obj_id})
+        direction = clear_direction(ctx, believed, half, exclude={obj_id})
         pattern = particle_before(at, o.diameter, r_max, direction=direction, options=ctx.scan_opts)
     res = yield from run_pattern(ctx, pattern)
     t_seen, seen_at = _seen(ctx, res, t)
     gate = r_max + o.radius + ctx.scan_opts.resolved(o.diameter).margin     # as far as its lines reach
-    if res.found and not (yield from identify(ctx, obj_id, res, seen_at, gate, resolve=resolve)):
+    expected = None if shift is None else tuple(believed)
+    if res.found and not (yield from identify(ctx, obj_id, res, seen_at, gate, expected=expected,
+                                                         resolve=resolve, adopt=shift is None)):
         res = replace(res, found=False)
-    if not res.found and o.kind != "rod" and any(ln.edges.reason in CROWDED for ln in res.lines):
+    if not res.found and shift is None and o.kind != "rod" and any(ln.edges.reason in CROWDED for ln in res.lines):
         seen = yield from _locate_by_image(ctx, obj_id, r_max, gate, resolve)
         if seen is not None:
             return seen
@@ -274,7 +278,7 @@ ASSOCIATION_REACH = 1000.0
 
 
 def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=None, resolve: bool = True,
-             height: float | None = None):
+             height: float | None = None, adopt: bool = True):
     """Whether the object a located scan result ``res`` shows at ``at`` (layout frame) is
     ``obj_id`` (believed at ``expected``, by default where the belief puts it, within
     ``gate`` nm): :func:`~.association.associate` against every believed object near.
@@ -285,7 +289,8 @@ def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=Non
     candidate it lies nearer to, relative to their gates. A sighting no believed object
     explains is added to the belief as a new object. Events say which happened.
     ``height``: the sighting's height (nm) where ``res`` has no lines to tell it (an
-    image's apex)."""
+    image's apex). ``adopt``: False where the sighting of a hypothesis only (``expected``
+    not the belief's) is no evidence of a new object."""
     t = ctx.scan_ref if ctx.scan_ref is not None else (yield Msg("clock"))
     at = np.asarray(at, float)
     cov = res.cov if res.cov is not None else np.eye(2) * DEFAULT_COV
@@ -301,7 +306,7 @@ def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=Non
     if assoc.kind == "match":
         return True
     yield Msg("event", (assoc.text(obj_id),), {"level": "warn"})
-    if assoc.kind == "new":
+    if assoc.kind == "new" and adopt:
         new = ctx.belief.add_new(o.kind, at, height if height is not None else o.diameter, o, t,
                                  ctx.drift.observation_cov(t, cov))
         rod = ctx.belief[new].kind != "particle"
@@ -311,7 +316,7 @@ def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=Non
                             f"{height if height is not None else o.diameter:.0f} nm high"
                             + (": an obstacle" if rod else ""),), {"level": "warn"})
         return False
-    if assoc.kind == "other" or not resolve:
+    if assoc.kind in ("other", "new") or not resolve:
         return assoc.kind == "ambiguous" and _nearer(me, others, assoc.others, at)
     for oid in assoc.others[:2]:
         found = yield from locate(ctx, oid, widen=False, resolve=False)

@@ -223,6 +223,36 @@ def test_after_a_drift_jump_the_report_names_the_particle_in_each_slot(seed, sig
     assert set(out.truly_filled) == slots and set(out.filled) == slots and not out.disagreements
 
 
+@pytest.mark.parametrize("seed", [1, 8])
+def test_after_a_jump_as_the_full_scan_ends_a_widened_searchs_find_is_confirmed_before_it_is_a_reference(seed):
+    """allpushed, a 300 nm jump at 600 s as the full scan ends (``bench_drift_refs.py
+    --jump-after 0``), pushes four at a time (the default): the bootstrap's first references
+    are found only by widened searches, which take other particles for some; each is a
+    reference only once a particle of the nearest rows is found where it puts it, and every
+    slot is filled. (Before, d480fe9: seed 1 filled 1 of 9 and seed 8 none, and the check
+    scans of seed 8 called eight filled; seed 8's o8, 96 nm off along x, had made the
+    velocity 0.22 nm/s off.)"""
+    scene, layout = family_case("allpushed", seed)
+    change = replace(scene.params.drift_change, jump=300.0, jump_at=600.0)
+    scene = replace(scene, params=replace(scene.params, drift_change=change))
+    events = Events()
+    out = dry_run(scene, layout, options=ExecOptions(strategy="full"), subscribers=[events])
+    assert any("not confirmed" in t for t in events.texts), events.texts
+    assert any("is confirmed by" in t for t in events.texts), events.texts
+    assert set(out.truly_filled) == {t.id for t in layout.targets} and not out.disagreements
+
+
+def test_the_particles_that_confirm_a_search_are_the_nearest_rows_unscanned():
+    from types import SimpleNamespace
+
+    from nanoasm.executor.bootstrap_confirm import CONFIRM_TRIES, candidates
+
+    picks = SimpleNamespace(stretches=[[("object", "a", 100.0), ("feature", "c1", 290.0)],
+                                       [("object", "b", 500.0), ("object", "d", 260.0), ("object", "e", 320.0)]])
+    got = candidates(picks, 300.0, "e")
+    assert [p[1] for p in got] == ["d", "a"][:CONFIRM_TRIES]     # not e itself, not a corner
+
+
 def test_no_repair_round_when_rounds_are_off():
     """allpushed seed 6, the jump at 800 s (the run of the lost-in-a-jump test above): with
     repair rounds every slot is filled, without them 7 of 9, and the run says so. (Seed 1 at
