@@ -17,10 +17,11 @@ distance ``(R + r_tip) sin α_c / tan e`` came within 2 % of where the particle 
 dropped (``tests/test_push_legs.py``). Once a leg has measured the particle's own turn
 ``e``, the legs are cut to ``ℓ |tan e| + 3 √(σ_lat² + (ℓ tan 1°)²) ≤ (R + r_tip) sin α_c``.
 
-Between legs, with ``between_legs = "contact"`` (the default), the lateral coordinate comes from
-the leg's own forces when they tell it well enough: the contact angle at the leg's end (:mod:`.contact_angle`) puts the
-particle at ``r_c`` from the tip's end along the contact normal, to within
-:data:`CONTACT_STD` nm (1σ). Before the last leg, and otherwise, a single scan line across the push (sequential
+Between legs, with ``between_legs = "contact"`` (the default), the lateral coordinate comes
+from the leg's own forces when they tell it well enough: the contact angle at the leg's end
+(:mod:`.contact_angle`) puts the particle at ``r_c`` from the tip's end along the contact
+normal, to within :data:`CONTACT_STD` nm (1σ). Before the last leg (but with
+``"contact-only"``), and otherwise, a single scan line across the push (sequential
 parallel pushing, Xu, Kalantari and Qian) measures it; the longitudinal one is where the
 tip stopped, the particle against it. The lateral deviations measure the particle's own
 direction error (the same all along one push), and the next legs are aimed to cancel it.
@@ -153,7 +154,7 @@ def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, t
     located between them (see the module docstring). Returns ``(verdict, legs, the last
     leg's operation)``; the caller scans after the last leg as after any push."""
     opts = ctx.options
-    contact = opts.between_legs == "contact"
+    contact = opts.between_legs in ("contact", "contact-only")
     track = TRACK_STOP * opts.capture_angle if contact else None
     goal = np.asarray(op.expect.at, float)
     pos = np.asarray(start.at, float)
@@ -202,8 +203,9 @@ def push_in_legs(ctx: RunContext, op: Operation, start, lever, preload: float, t
         angle = verdict.contact.angle if verdict.contact is not None \
             and abs(verdict.contact.angle) < opts.capture_angle else 0.0
         expected = _on_tip(tip_end, motion, reach_rc, angle)           # where it sits on the tip
-        # the leg that may be the last starts from a line's measurement
-        seen = None if not contact or float(np.linalg.norm(goal - expected)) <= 1.2 * model else \
+        # the leg that may be the last starts from a line's measurement, but with "contact-only"
+        lined = opts.between_legs == "contact" and float(np.linalg.norm(goal - expected)) <= 1.2 * model
+        seen = None if not contact or lined else \
             _from_contact(verdict.contact, tip_end, motion, reach_rc, opts.capture_angle)
         how = "its contact angle"
         if seen is None:
