@@ -277,12 +277,9 @@ def _where_it_was(ctx: RunContext, op: Operation):
 
 
 def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan_options: PlanOptions):
-    """One push with its scans; returns "ok", "failed", "lost" or "deferred" (:func:`deferred`)."""
-    corrected = ctx.corrected
+    """One push with its scans; returns "ok", "failed" or "lost"."""
     if (yield from prepare(ctx, op, plan_options)) == "lost":
         return "lost"
-    if (yield from deferred(ctx, corrected, [op.object])):
-        return "deferred"
     aimed = aim(ctx, op, course, plan_options)
     if aimed is None:
         return "ok"
@@ -291,18 +288,3 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
         return pressed
     verdict, op = pressed
     return (yield from conclude(ctx, op, aimed[1], verdict, course, plan_options))
-
-
-def deferred(ctx: RunContext, corrected: bool, objects):
-    """Whether the pushes of ``objects`` wait for the rest to be planned again (plan stub):
-    a relocalisation while they were prepared moved believed objects (``ctx.corrected``,
-    False before), and the plan was made where they were believed before. allpushed seed 7,
-    a 300 nm jump at 750 s, pushes one at a time (cc0d2b6): o8's after-scan saw it 298 nm off
-    course, the replan gave its slot s8 to o9, the relocalisation during o9's before-scan put
-    o8 back into s8, and o9 was pushed into s8 all the same, shoving o8 out unseen; the report
-    named the particles of s4 and s8 the wrong way round."""
-    if corrected or not ctx.corrected or not ctx.options.strategy.replans:
-        return False
-    yield Msg("event", (f"{', '.join(objects)}: not pushed yet: a relocalisation moved believed objects, "
-                        f"the rest is planned again first",), {"level": "warn"})
-    return True
