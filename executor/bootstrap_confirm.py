@@ -4,9 +4,9 @@ object before it measures the drift (:func:`confirm`).
 A widened search takes whatever particle lies nearest where it looked. After a drift jump
 as the full scan ends, the first references are each hundreds of nm from where the model
 puts them, and a search finds another particle for one as often as not: on allpushed seed 1
-with a 300 nm jump at the scan's end (d480fe9), the two first references were 400 and 690
-nm from their objects, and every reference after them, looked for where those put the
-drift, needed a widened search too; the run filled none of nine slots. So what such a
+with a 300 nm jump at the scan's end (d480fe9), the two first references measured the
+drift 405 and 696 nm off, and every reference after them, looked for where those put the
+drift, needed a widened search too; the run filled one of nine slots. So what such a
 search found is a hypothesis: the sample moved by ``Δ`` (where it was seen, less where it
 was believed). Every other object then lies ``Δ`` from where it is believed too, give or
 take the velocity's error over the rows between; a particle of the nearest rows, looked

@@ -106,6 +106,16 @@ class RunContext:
         at = np.asarray(scanner.at) - self.offset(t)
         return replace(scanner, at=(float(at[0]), float(at[1])))
 
+    def add_new(self, kind: str, at, height: float, like, t: float, cov) -> str:
+        """An object seen where none is believed (:meth:`Belief.add_new`); its id. One not a
+        particle is given up, an obstacle never assigned: its shape is not known (seen while
+        looking for a rod, its length and angle are the rod's, not what was seen: device
+        seed 2 on 2e65012 assigned such a copy the rod's slot, which got "no path")."""
+        new = self.belief.add_new(kind, at, height, like, t, cov)
+        if kind != "particle":
+            self.ledger.given_up.add(new)
+        return new
+
     def observe(self, obj_id: str, at, t: float, cov, *, angle=None) -> None:
         """Record a measured pose (layout frame); its uncertainty includes the drift
         estimate's at ``t``, through which it was put into the layout frame."""

@@ -365,9 +365,7 @@ def _associate(ctx: RunContext, region, found, clumps, pixel: float, sought=froz
             ctx.observe(oid, s.at, t, cov, angle=s.angle if s.elongated else None)
             out.append(f"{oid} found again {lost[0][0]:.0f} nm from where it was last believed")
             continue
-        new = belief.add_new(s.kind, s.at, s.diameter, s, t, cov)
-        if s.kind != "particle":
-            ctx.ledger.given_up.add(new)               # of unknown shape: an obstacle, never pushed
+        new = ctx.add_new(s.kind, s.at, s.diameter, s, t, cov)      # not a particle: an obstacle
         out.append(f"{new} ({s.kind}) seen where nothing was believed"
                    + ("" if s.kind == "particle" else ": an obstacle"))
     return out, unseen

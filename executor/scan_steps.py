@@ -307,11 +307,9 @@ def identify(ctx: RunContext, obj_id: str, res, at, gate: float, *, expected=Non
         return True
     yield Msg("event", (assoc.text(obj_id),), {"level": "warn"})
     if assoc.kind == "new" and adopt:
-        new = ctx.belief.add_new(o.kind, at, height if height is not None else o.diameter, o, t,
-                                 ctx.drift.observation_cov(t, cov))
-        rod = ctx.belief[new].kind != "particle"
-        if rod:     # its length and angle are the rod's looked for, not seen: an obstacle, never assigned
-            ctx.ledger.given_up.add(new)
+        new = ctx.add_new(o.kind, at, height if height is not None else o.diameter, o, t,
+                          ctx.drift.observation_cov(t, cov))
+        rod = o.kind != "particle"          # an obstacle, never assigned (:meth:`RunContext.add_new`)
         yield Msg("event", (f"{new}: a new object at ({at[0]:.0f}, {at[1]:.0f}) nm, "
                             f"{height if height is not None else o.diameter:.0f} nm high"
                             + (": an obstacle" if rod else ""),), {"level": "warn"})

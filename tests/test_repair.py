@@ -15,6 +15,7 @@ from hypothesis import given, settings, strategies as st
 from nanoasm.dryrun import dry_run
 from nanoasm.executor import repair
 from nanoasm.executor.belief import Belief
+from nanoasm.executor.context import RunContext
 from nanoasm.executor.ledger import RunLedger
 from nanoasm.executor.references import References
 from nanoasm.executor.strategy import ExecOptions
@@ -70,6 +71,8 @@ class FakeCtx:
 
     def observe(self, oid, at, t, cov, *, angle=None):
         self.belief.observe(oid, at, t, np.asarray(cov, float), angle=angle)
+
+    add_new = RunContext.add_new            # the run's own: a new object not a particle is given up
 
 
 def _p(oid, x, y, d=80.0):
