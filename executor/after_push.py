@@ -17,6 +17,9 @@ def review(asm, op: Operation, outcome: str, ops: list[Operation], i: int):
     pushes fail, or leave it far off course, again and again is given up on. Returns why
     the rest must be planned again, or None."""
     ctx, opts, ledger = asm.ctx, asm.options, asm.ctx.ledger
+    if outcome == "deferred":                       # not pushed: the rest is planned again first
+        ctx.corrected = False
+        return f"{op.object} deferred (objects moved by a relocalisation before its push)"
     o = ctx.belief[op.object]
     lost = outcome == "lost"
     off, limit = 0.0, math.inf

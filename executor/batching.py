@@ -44,7 +44,7 @@ from nanoasm.planner import Operation, PlanOptions
 
 from .context import RunContext
 from .engine import Msg
-from .pushing import aim, conclude, prepare, press
+from .pushing import aim, conclude, deferred, prepare, press
 from .references import swept_area
 
 #: Pushes looked ahead over for partners of the next one.
@@ -133,14 +133,18 @@ def _follow(ctx: RunContext, obj_id: str, shift: np.ndarray) -> None:
 def push_together(ctx: RunContext, group: list[Operation], course, lever, plan_options: PlanOptions):
     """The pushes of ``group`` in one contact phase: each object located (tapping), each
     pushed (contact), each scanned after (tapping). Returns each push's outcome, "ok",
-    "failed" or "lost", in the group's order."""
+    "failed", "lost" or "deferred" (:func:`~.pushing.deferred`: none is pushed), in the
+    group's order."""
     est = ctx.drift
     watch = ctx.drift = _Revisions(est)
+    corrected = ctx.corrected
     try:
         ready, seen = [], []
         for op in group:
             ready.append((yield from prepare(ctx, op, plan_options, trust=False)))
             seen.append(watch.shift.copy())
+        if (yield from deferred(ctx, corrected, [op for op, lost in zip(group, ready) if lost is None])):
+            return [lost or "deferred" for lost in ready]
         names = ", ".join(op.object for op in group)
         yield Msg("event", (f"{len(group)} pushes in one contact phase: {names}",))
         pressed = []

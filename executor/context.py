@@ -75,6 +75,8 @@ class RunContext:
     #: the last push's after-scan: [object, its time, the drift estimate's revision then,
     #: pushes so far], from which the next push of that object may start (:mod:`.pushing`)
     last_after: list | None = None
+    #: pushes deferred for a replan, by object (:func:`~.pushing.deferred`; not in checkpoints)
+    deferrals: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.scan_opts is None:

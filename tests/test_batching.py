@@ -251,3 +251,34 @@ def test_a_group_aims_each_push_from_its_scan_moved_by_the_revisions_made_after_
     assert aimed["b"] == (8000.0 - 4.0, 2000.0)              # c's after b's
     assert aimed["c"] == (2000.0, 8000.0)                    # none after c's
     assert isinstance(ctx.drift, _Est)                        # the estimator itself again
+
+
+def _drive(gen):
+    """Run a plan stub that only emits events: (its value, the event texts)."""
+    texts = []
+    try:
+        msg = next(gen)
+        while True:
+            texts.append(msg.args[0])
+            msg = gen.send(None)
+    except StopIteration as stop:
+        return stop.value, texts
+
+
+def test_a_push_a_relocalisation_put_an_object_in_the_way_of_waits_once():
+    """``pushing.deferred``: after a relocalisation (``ctx.corrected``) a push whose particle
+    would meet another believed one on its way waits for a replan, once an object; a clear
+    way, no relocalisation, or the other object pushed in the same group, does not wait."""
+    from nanoasm.executor.pushing import deferred
+
+    a, b, c = _p("a", 2000, 2000), _p("b", 2600, 2000), _p("c", 2000, 2600)
+    ctx = _ctx([a, b, c])
+    through, short = _push(0, a, 900), _push(1, a, 400)       # a's way to x = 2900 or 2400
+    assert _drive(deferred(ctx, False, [through])) == (False, [])        # nothing relocalised
+    ctx.corrected = True
+    assert _drive(deferred(ctx, True, [through])) == (False, [])         # moved before it was prepared
+    assert _drive(deferred(ctx, False, [short]))[0] is False             # 2400 + 45: b's edge is at 2555
+    assert _drive(deferred(ctx, False, [through, _push(2, b, 0, 900)]))[0] is False   # b goes too
+    waits, texts = _drive(deferred(ctx, False, [through]))
+    assert waits and "put b in the way of a's push" in texts[0]
+    assert _drive(deferred(ctx, False, [through]))[0] is False           # once

@@ -256,6 +256,19 @@ def test_the_particles_that_confirm_a_search_are_the_nearest_rows_unscanned():
     assert [p[1] for p in got] == ["d", "a"][:CONFIRM_TRIES]     # not e itself, not a corner
 
 
+def test_a_push_prepared_across_a_relocalisation_that_moved_objects_waits_for_a_replan():
+    """allpushed seed 7, the jump at 750 s, pushes one at a time: o8's after-scan sees it 298
+    nm off course (the jump), the replan gives its slot s8 to o9, and the relocalisation
+    during o9's before-scan puts o8 back into s8. o9 is not pushed before the rest is planned
+    again, and every slot holds the particle the report names. (Before, cc0d2b6: o9 was
+    pushed into s8, shoving o8 out unseen, and the report named s4's and s8's particles the
+    wrong way round.)"""
+    out, layout, events = _allpushed_jump(7, 750.0)
+    assert any("not pushed yet" in t for t in events.texts), events.texts
+    slots = {t.id for t in layout.targets}
+    assert set(out.filled) == slots and set(out.truly_filled) == slots and not out.disagreements
+
+
 def test_no_repair_round_when_rounds_are_off():
     """allpushed seed 6, the jump at 800 s (the run of the lost-in-a-jump test above): with
     repair rounds every slot is filled, without them 7 of 9, and the run says so. (Seed 1 at
