@@ -52,6 +52,7 @@ from .scan_area import ScanArea
 from .checkpoints import checkpoint, restore
 from .strategy import ExecOptions
 from .summary import RunSummary, summary
+from .torn_band import survey_band
 from .verdict import final_check
 
 Procedure = Generator[Msg, Any, RunSummary]
@@ -140,6 +141,9 @@ class Assembly:
         yield from self._register(env, row_time, area.resolution)
         # the obstacles too (electrodes: a slot beside one is planned against where it is)
         ctx.belief.obstacles = unskewed_obstacles(env.obstacles, drift, row_time)
+        if self.strategy.scans:                # a band a jump made the full scan skip, if a particle is missing
+            yield from survey_band(ctx, self.layout, t0, line_time, pixels, region_side,
+                                   self.plan_options.tip_radius)
         yield _phase("plan")
         w0 = time.perf_counter()
         plan, line = first_plan(self.replanner, self.reviewed, self.layout, self.ctx.environment(), area.pixel_size)

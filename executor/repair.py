@@ -236,23 +236,25 @@ def survey(ctx: RunContext, bad, verdicts, tip_radius: float):
     slots, windows where particles still lost were pushed."""
     first = doubtful_windows(ctx, bad)[:MAX_WINDOWS]
     for k, window in enumerate(first):
-        yield from _survey_window(ctx, window, k + 1, tip_radius)
+        yield from survey_window(ctx, window, k + 1, tip_radius)
     if _spare_particles(ctx, verdicts) >= len(bad):
         return                                           # enough to fill them without the lost
     todo = lost_windows(ctx, [*first, *ctx.surveyed])[:MAX_WINDOWS - len(first)]
     for k, (window, sought) in enumerate(todo):
         if not sought & ctx.belief.lost:
             continue                                     # found again meanwhile
-        yield from _survey_window(ctx, window, len(first) + k + 1, tip_radius, sought)
+        yield from survey_window(ctx, window, len(first) + k + 1, tip_radius, sought)
         ctx.surveyed.append(window)                      # not looked at again for the lost
 
 
-def _survey_window(ctx: RunContext, window, k: int, tip_radius: float, sought: set[str] = frozenset()):
+def survey_window(ctx: RunContext, window, k: int, tip_radius: float, sought: set[str] = frozenset(),
+                  pixel: float | None = None):
     """One survey window (layout frame): scanned where the estimate puts it, a drift
     reference measured before it, identified, associated with the belief (a
     sighting nothing believed matches is taken for the nearest of the lost objects
-    ``sought`` there)."""
-    pixel = ctx.full_scan.pixel_size if ctx.full_scan is not None else ctx.options.pixel_size
+    ``sought`` there). ``pixel``: its pixel size, nm (the full scan's by default)."""
+    if pixel is None:
+        pixel = ctx.full_scan.pixel_size if ctx.full_scan is not None else ctx.options.pixel_size
     lo, hi = np.asarray(ctx.config.lower[:2], float), np.asarray(ctx.config.upper[:2], float)
     middle = 0.5 * (np.asarray(window[:2]) + np.asarray(window[2:]))
     yield from keep_track(ctx)

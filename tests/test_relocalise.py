@@ -290,3 +290,19 @@ def test_a_reference_scanned_again_tells_a_tear_from_a_jump_after_the_scan(after
     assert where in jumped, (seed, jumped)
     dx, dy = (float(v) for v in jumped.split("jumped by ")[1].split(" nm")[0].split(","))
     assert abs(math.hypot(dx, dy) - 300.0) < 20.0, jumped      # the jump itself, not one read from a mix
+
+
+def test_a_particle_in_the_rows_a_tear_skipped_is_found_by_surveying_them():
+    """allpushed seed 3, 300 nm at 300 s, halfway through the full scan: the jump carries
+    the sample 247 nm along the slow axis between two rows, and the rows it skipped hold o4,
+    which the full scan never imaged. With fewer particles than slots, the band between
+    the references either side of the tear is surveyed before the plan, and every slot is
+    filled. (Without the survey the plan assigned 8 of 9 slots and left s5 unfilled.)"""
+    scene, layout = family_case("allpushed", 3)
+    events = Events()
+    out = dry_run(_with_jump(scene, 300.0, 300.0), layout, options=ExecOptions(strategy="full"),
+                  subscribers=[events])
+    assert any("the full scan skipped the rows" in t for t in events.texts), events.texts
+    assert any(t.startswith("in the skipped rows: new") for t in events.texts), events.texts
+    slots = {t.id for t in layout.targets}
+    assert set(out.truly_filled) == slots and set(out.verdict_filled) == slots
