@@ -302,7 +302,7 @@ def test_a_particle_in_the_rows_a_tear_skipped_is_found_by_surveying_them():
     events = Events()
     out = dry_run(_with_jump(scene, 300.0, 300.0), layout, options=ExecOptions(strategy="full"),
                   subscribers=[events])
-    assert any("the full scan skipped the rows" in t for t in events.texts), events.texts
+    assert any("the full scan may have skipped rows" in t for t in events.texts), events.texts
     assert any(t.startswith("in the skipped rows: new") for t in events.texts), events.texts
     slots = {t.id for t in layout.targets}
     assert set(out.truly_filled) == slots and set(out.verdict_filled) == slots

@@ -133,13 +133,24 @@ def test_a_ctrl_c_while_a_module_loads_lets_the_import_end_and_stops_the_run_nex
     assert engine.state is RunState.ABORTED and rec.closed and rec.docs[-1][1].state == "aborted"
 
 
+# The Ctrl-C is timed from just before the import, inside the try: a timer started before it
+# could fire while Thread.start() still waited for its thread (a loaded machine, the suite on
+# two workers: KeyboardInterrupt outside the try, exit -2).
 OMPL_IMPORT_INTERRUPTED = """
 import os, signal, sys, threading, time
 from nanoasm.executor.stopping import interrupt_outside_imports
 signal.signal(signal.SIGINT, interrupt_outside_imports)
-threading.Timer(float(sys.argv[1]), lambda: os.kill(os.getpid(), signal.SIGINT)).start()
+go = threading.Event()
+
+def ctrl_c():
+    go.wait()
+    time.sleep(float(sys.argv[1]))
+    os.kill(os.getpid(), signal.SIGINT)
+
+threading.Thread(target=ctrl_c, daemon=True).start()
 loaded = False
 try:
+    go.set()
     import ompl.base, ompl.geometric
     loaded = True
     time.sleep(1.0)
