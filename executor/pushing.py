@@ -300,16 +300,16 @@ def push(ctx: RunContext, op: Operation, course: Course, lever: Cantilever, plan
 MAX_DEFERRALS = 1
 
 
-def in_the_way(ctx: RunContext, op: Operation, skip) -> str | None:
-    """A believed object (none of ``skip``, none lost) that the particle of ``op`` would meet
-    going straight from where it is believed to where the push is to leave it: its id, or
-    None. (A rod's course has its own check after each push, :func:`~.course.course_clear`.)"""
+def in_the_way(ctx: RunContext, op: Operation, others) -> str | None:
+    """One of ``others`` (``(id, body)`` pairs: believed objects where the planner would
+    put them) that the particle of ``op`` would meet going straight from where it is
+    believed to where the push is to leave it: its id, or None. (A rod's course has its
+    own check after each push, :func:`~.course.course_clear`.)"""
     o = ctx.belief[op.object]
     if o.kind != "particle":
         return None
     start, end = np.asarray(o.at, float), np.asarray(op.expect.at, float)
     path = shapely.LineString([start, end]) if math.dist(start, end) > 1e-6 else shapely.Point(start)
-    others = [(b.id, b) for b in ctx.environment().objects if b.id not in skip]
     hits = within_reach(path, others, o.radius)
     return hits[0] if hits else None
 
@@ -327,10 +327,11 @@ def deferred(ctx: RunContext, corrected: bool, ops):
     if corrected or not ctx.corrected or not ctx.options.strategy.replans:
         return False
     skip = {op.object for op in ops}
+    others = [(b.id, b) for b in ctx.environment().objects if b.id not in skip]    # none lost
     for op in ops:
         if ctx.deferrals.get(op.object, 0) >= MAX_DEFERRALS:
             continue
-        other = in_the_way(ctx, op, skip)
+        other = in_the_way(ctx, op, others)
         if other is not None:
             ctx.deferrals[op.object] = ctx.deferrals.get(op.object, 0) + 1
             names = ", ".join(p.object for p in ops)

@@ -221,9 +221,9 @@ def _particle_slots_not_filled(layout, verdicts) -> list:
             if v.state != "filled" and t.kind == "particle" and (v.error is None or v.error > tol)]
 
 
-def _spare_particles(ctx: RunContext, verdicts) -> int:
+def spare_particles(ctx: RunContext, verdicts=()) -> int:
     """Particles the planner may still bring to a slot: believed, not lost, not given
-    up, not what a filled slot holds."""
+    up, not what a filled slot holds (``verdicts``: the check scans', if any)."""
     holding = {v.object for v in verdicts if v.state == "filled"}
     return sum(o.kind == "particle" and oid not in ctx.belief.lost and oid not in ctx.ledger.given_up
                and oid not in holding for oid, o in ctx.belief.objects.items())
@@ -237,7 +237,7 @@ def survey(ctx: RunContext, bad, verdicts, tip_radius: float):
     first = doubtful_windows(ctx, bad)[:MAX_WINDOWS]
     for k, window in enumerate(first):
         yield from survey_window(ctx, window, k + 1, tip_radius)
-    if _spare_particles(ctx, verdicts) >= len(bad):
+    if spare_particles(ctx, verdicts) >= len(bad):
         return                                           # enough to fill them without the lost
     todo = lost_windows(ctx, [*first, *ctx.surveyed])[:MAX_WINDOWS - len(first)]
     for k, (window, sought) in enumerate(todo):

@@ -23,7 +23,7 @@ import shapely
 
 from .context import RunContext
 from .engine import Msg
-from .repair import survey_window, tiles
+from .repair import spare_particles, survey_window, tiles
 from .scan_jump import tear_band
 
 #: Beyond the band (nm): a particle whose centre lies within this of it reaches into it.
@@ -48,17 +48,23 @@ def skipped_band(ctx: RunContext, t0: float, line_time: float, pixels: int, side
     scan = getattr(drift, "scan", None)
     if scan is None or not scan.stepped or scan.tau_end is None or not scan.tau_jump < scan.tau_end:
         return None
-    pixel = side / pixels
 
-    def layout_y(tau: float) -> float:        # the layout row the full scan's row at tau imaged
-        row = min(max((tau + drift.epoch - t0) / line_time - 0.5, 0.0), pixels - 1.0)
-        return float(drift.unskew(np.array([0.5 * side, row * pixel]), tau)[1])
+    def layout_y(tau: float) -> float:
+        return _layout_row(ctx, tau, t0, line_time, pixels, side)
 
     tau = scan.tau_jump
-    if layout_y(tau) - layout_y(tau - 1e-6) < LEAST_PIXELS * pixel:
+    if layout_y(tau) - layout_y(tau - 1e-6) < LEAST_PIXELS * side / pixels:
         return None                             # rows imaged twice, or too few skipped
     between = tear_band(scan) or (tau, tau)
     return layout_y(min(between[0], tau - 1e-6)), layout_y(max(between[1], tau))
+
+
+def _layout_row(ctx: RunContext, tau: float, t0: float, line_time: float, pixels: int, side: float) -> float:
+    """The layout row (nm) the full scan's row at ``tau`` (s after the epoch) imaged, by the
+    drift model (its jump included from the jump's time on)."""
+    drift = ctx.drift
+    row = min(max((tau + drift.epoch - t0) / line_time - 0.5, 0.0), pixels - 1.0)
+    return float(drift.unskew(np.array([0.5 * side, row * side / pixels]), tau)[1])
 
 
 def survey_band(ctx: RunContext, layout, t0: float, line_time: float, pixels: int, side: float, tip_radius: float):
@@ -69,36 +75,24 @@ def survey_band(ctx: RunContext, layout, t0: float, line_time: float, pixels: in
     band = skipped_band(ctx, t0, line_time, pixels, side)
     if band is None:
         return
-    belief, given_up = ctx.belief, ctx.ledger.given_up
     slots = sum(t.kind == "particle" for t in layout.targets)
-
-    def particles() -> list:
-        return [o for oid, o in belief.objects.items()
-                if o.kind == "particle" and oid not in belief.lost and oid not in given_up]
-
-    seen = particles()
-    if not seen or len(seen) >= slots:
+    seen = spare_particles(ctx)
+    if not seen or seen >= slots:
         return
     y0, y1 = band
     windows = tiles(shapely.box(0.0, y0, side, y1), margin=BAND_MARGIN)
-    middle = _model_row(ctx, t0, line_time, pixels, side)
+    middle = _layout_row(ctx, ctx.drift.scan.tau_jump, t0, line_time, pixels, side)
     windows.sort(key=lambda w: (abs(0.5 * (w[1] + w[3]) - middle), w[0]))
-    pixel = max(side / pixels, min(o.diameter for o in seen) / PIXELS_ACROSS)
+    smallest = min(o.diameter for o in ctx.belief.objects.values() if o.kind == "particle")
+    pixel = max(side / pixels, smallest / PIXELS_ACROSS)
     yield Msg("event", (f"the full scan may have skipped rows within {y0:.0f}-{y1:.0f} nm where the drift "
-                        f"jumped, and {len(seen)} particle(s) are seen for {slots} slot(s): surveying them "
+                        f"jumped, and {seen} particle(s) are seen for {slots} slot(s): surveying them "
                         f"({len(windows)} window(s) at most, {pixel:.0f} nm pixels)",), {"level": "warn"})
-    before = set(belief.objects)
+    before = set(ctx.belief.objects)
     for k, window in enumerate(windows):
         yield from survey_window(ctx, window, k + 1, tip_radius, pixel=pixel)
-        if len(particles()) >= slots:
+        if spare_particles(ctx) >= slots:
             break
-    new = sorted(set(belief.objects) - before)
+    new = sorted(set(ctx.belief.objects) - before)
     if new:
         yield Msg("event", (f"in the skipped rows: {', '.join(new)}",))
-
-
-def _model_row(ctx: RunContext, t0: float, line_time: float, pixels: int, side: float) -> float:
-    """The layout row (nm) the full scan imaged as the drift jumped, by the model."""
-    drift, scan = ctx.drift, ctx.drift.scan
-    row = min(max((scan.tau_jump + drift.epoch - t0) / line_time - 0.5, 0.0), pixels - 1.0)
-    return float(drift.unskew(np.array([0.5 * side, row * side / pixels]), scan.tau_jump)[1])

@@ -150,10 +150,10 @@ def test_what_a_round_surveys_first_empty_particle_slots_their_objects_and_overl
     assert not inside((2000, 2000)) and not inside((1000, 3000)) and not inside((3500, 500))
     assert len(out) == 2, [centre(w) for w in out]
     # particles left for the empty slots: a, b, c, d (none holds a filled slot)
-    assert repair._spare_particles(ctx, verdicts) == 4
+    assert repair.spare_particles(ctx, verdicts) == 4
     ctx.belief.lose("a")
     ctx.ledger.given_up.add("b")
-    assert repair._spare_particles(ctx, (SlotVerdict("s3", "d", "filled", 8.0),)) == 1
+    assert repair.spare_particles(ctx, (SlotVerdict("s3", "d", "filled", 8.0),)) == 1
 
 
 def test_a_lost_objects_windows_follow_its_pushes_latest_first_and_skip_what_was_surveyed():
