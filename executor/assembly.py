@@ -38,6 +38,7 @@ from .progress_docs import PROGRESS, ProgressDoc
 from .drift_bootstrap import bootstrap
 from .drift_steps import unskewed_obstacles
 from .engine import Msg
+from .keepout_frame import KeepoutWitness
 from .estimators import estimator_for
 from .motion_steps import travel_to
 from .after_push import correct, review, shoved_back
@@ -134,10 +135,12 @@ class Assembly:
         # the full scan's rows put them (hundreds of nm apart over a frame)
         if drift.bootstraps:
             yield _phase("drift")
-        yield from bootstrap(ctx)
         def row_time(y: float) -> float:
             return t0 + (min(max(y * pixels / region_side, 0.0), pixels - 1.0) + 0.5) * line_time
 
+        keep = None if self.layout.marks or self.plan_options.align == "none" else \
+            KeepoutWitness(self.layout, env.obstacles, self.layout.area, row_time, area.resolution)
+        yield from bootstrap(ctx, keep)
         yield from self._register(env, row_time, area.resolution)
         # the obstacles too (electrodes: a slot beside one is planned against where it is)
         ctx.belief.obstacles = unskewed_obstacles(env.obstacles, drift, row_time)

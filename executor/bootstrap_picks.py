@@ -111,6 +111,13 @@ class Picks:
                 self._take(j, s.index(pick))
                 return
 
+    def put_back(self, pick) -> None:
+        """``pick``, scanned but not measured, may be picked again (by :meth:`between`
+        too): back at the end of its stretch."""
+        j = self._of.get(pick[1])
+        if j is not None and pick not in self.stretches[j]:
+            self.stretches[j].append(pick)
+
     def forget(self, rid: str) -> None:
         """``rid`` is no object of its own (:func:`~.tear_doubles.doubles`): never picked."""
         for s in self.stretches:

@@ -78,6 +78,9 @@ class Alignment:
     marks: int
     of: int
     grown: float
+    #: the matched corners: each mark corner (layout frame, moved out by ``grown`` along
+    #: its miter) with the obstacle corner it matched (as found, ``moved``)
+    pairs: tuple[tuple[Point, Point], ...] = ()
 
     def line(self) -> str:
         return (f"registered the layout to the scan: {self.transform.line()}; {self.marks} of {self.of} "
@@ -270,7 +273,9 @@ def register(layout: Layout, env: Environment, *, scale: bool = False, resolutio
                        f"as at {other.transform.line()} ({len(other.pairs)} corners); add a mark that tells them "
                        "apart, or give --no-align")
     matched_marks = len({marks[i].outline for i, _ in best.pairs})
-    return Alignment(rounded(best.transform), n, matched_marks, n_marks, best.grown)
+    pairs = tuple(((float(m.src[i, 0] + best.grown * m.miter[i, 0]), float(m.src[i, 1] + best.grown * m.miter[i, 1])),
+                   (float(m.dst[j, 0]), float(m.dst[j, 1]))) for i, j in best.pairs)
+    return Alignment(rounded(best.transform), n, matched_marks, n_marks, best.grown, pairs)
 
 
 def in_scan_frame(layout: Layout, env: Environment, align: str = "rigid", *, resolution: float = RESOLUTION,

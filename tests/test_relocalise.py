@@ -306,3 +306,60 @@ def test_a_particle_in_the_rows_a_tear_skipped_is_found_by_surveying_them():
     assert any(t.startswith("in the skipped rows: new") for t in events.texts), events.texts
     slots = {t.id for t in layout.targets}
     assert set(out.truly_filled) == slots and set(out.verdict_filled) == slots
+
+
+def _first_estimate(seed: int, after: float, family: str = "allpushed"):
+    scene, layout = family_case(family, seed)
+    events = _FirstEstimate()
+    with pytest.raises(_FirstEstimate.Stop):
+        dry_run(_with_jump(scene, 300.0, scene.area[1] / 10.0 + after), layout, options=ExecOptions(strategy="full"),
+                subscribers=[events])
+    return events
+
+
+def _jump_row(events) -> float:
+    [jumped] = [t for t in events.texts if t.startswith("the drift jumped by")]
+    assert "during the full scan" in jumped, jumped
+    dx, dy = (float(v) for v in jumped.split("jumped by ")[1].split(" nm")[0].split(","))
+    assert abs(math.hypot(dx, dy) - 300.0) < 20.0, jumped
+    return float(jumped.split("about its row of ")[1].split(" s")[0])
+
+
+def test_a_tear_the_probes_of_its_rows_made_look_like_a_jump_after_the_scan_is_told_apart_again():
+    """allpushed seed 2, 300 nm at 150 s of the 600 s scan: the references before the tear
+    are scanned last, so once a probe of the tear's rows is in, a jump after the scan from
+    the first of their times fits them as well, and the first of equal fits took it: every
+    object on the rows after the tear was put 300 nm off, and no slot was filled. A
+    reference of the latest rows scanned once more tells the two apart."""
+    events = _first_estimate(2, -450.0)
+    assert abs(_jump_row(events) - 150.0) < 20.0
+    assert any(t.startswith("bootstrap:") and "around the tear" in t for t in events.texts), events.texts
+
+
+@pytest.mark.parametrize("seed, probed", [(1, False), (7, True)])
+def test_a_tear_before_every_reference_is_told_by_the_layouts_keep_outs(seed, probed):
+    """allpushed, 300 nm at 150 s of the 600 s scan: the first references' rows lie after
+    the tear (seed 1: nothing lies before it; seed 7: o1 alone, found only by a widened
+    search, which no second object confirmed), so none measured the jump and the run
+    worked 300 nm from the layout's frame, its verdicts false. The keep-outs (the electrodes'
+    outlines) lie that far from the obstacles as the references place them: their corners,
+    references of the drift since the scan began, carry the tear, and o1 is looked for
+    again either side of it."""
+    events = _first_estimate(seed, -450.0)
+    assert any(t.startswith("the layout's keep-outs lie") for t in events.texts), events.texts
+    row = _jump_row(events)
+    probes = [t for t in events.texts if t.startswith("bootstrap:") and "around the tear" in t]
+    if probed:
+        assert probes and all("seen on the rows before it" in t for t in probes), probes
+        assert abs(row - 150.0) < 10.0
+    else:
+        assert row < 185.0          # before the first object's and corner's rows
+
+
+def test_keep_outs_that_agree_with_the_obstacles_add_nothing():
+    """Without a jump the keep-outs lie within a few nm of the obstacles: not taken."""
+    scene, layout = family_case("allpushed", 7)
+    events = _FirstEstimate()
+    with pytest.raises(_FirstEstimate.Stop):
+        dry_run(scene, layout, options=ExecOptions(strategy="full"), subscribers=[events])
+    assert not [t for t in events.texts if "keep-outs" in t or "jumped" in t], events.texts
