@@ -6,7 +6,6 @@ drift during the scan or after it told from velocity (:mod:`~nanoasm.executor.sc
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import numpy as np
@@ -17,9 +16,9 @@ from . import bootstrap_confirm, bootstrap_picks, creep_terms, keepout_frame, te
 from .context import RunContext
 from .drift_steps import emit_drift, scan_feature_lines
 from .engine import Msg
+from .bootstrap_tear import jump_state, jumped as _jumped, narrow_tear, tear_or_jump, told_again
 from .scan_consensus import left_out
-from .scan_drift import JUMP_GATE
-from .scan_jump import jump_text, scanned_before, tear_band
+from .scan_jump import jump_text
 from .scan_steps import locate
 
 #: Objects scanned again to find the drift velocity from the full scan's skew.
@@ -40,15 +39,6 @@ BOOTSTRAP_OUTLIERS = 3
 BOOTSTRAP_LEFT_TOGETHER = 2
 #: Gate probability of that test (χ² of a reference against the others' model).
 BOOTSTRAP_GATE = 0.9999
-#: Objects of the rows between the two references around a tear looked for on either side
-#: of it (:func:`_narrow_tear`), each halving the rows it may lie in.
-TEAR_PROBES = 6
-#: Room (nm) from any other object's footprint a probe of a tear wants about where it
-#: is looked for, on either side (the jump apart), before it is chosen for lying halfway:
-#: a search reaches its lines' margin and the object's radius beyond its 3σ (15 + 55 + 45
-#: nm for a 90 nm particle), and where the side is wrong a neighbour there is taken for it
-#: (scale300 seed 3, a tear at 1096 s: one 125 nm from the wrong spot put it at 1041 s).
-TEAR_ROOM = 250.0
 #: More references :func:`_earliest_rows` may scan for the drift since the scan began.
 EARLY_REFERENCES = 2
 #: Variance (nm²) of a component a bootstrap reference measures: the located centre's
@@ -154,7 +144,8 @@ def bootstrap(ctx: RunContext, keep=None):
     if (yield from keepout_frame.witness(ctx, keep, _jumped)):
         for pick in refuted:    # what a widened search alone found, looked for again either side of the tear
             picks.put_back(pick)
-    yield from _tear_or_jump(ctx, picks.latest(), scan_more, take)
+    yield from tear_or_jump(ctx, picks.latest(), scan_more, take, _bootstrap_rows)
+    told = jump_state(drift.scan)
     for kept, again, d in tear_doubles.doubles(ctx):
         if again in seen_objects and kept not in seen_objects:
             kept, again = again, kept
@@ -164,13 +155,16 @@ def bootstrap(ctx: RunContext, keep=None):
         seen_objects.pop(again, None)
         yield Msg("event", (f"bootstrap: {again} is {kept} imaged again by the tear of the full scan ({d:.1f} nm "
                             f"apart with the jump taken out): forgotten",))
-    yield from _narrow_tear(ctx, picks, take)
-    # the tear's probes add references of the rows before it, scanned last: a jump after
-    # the scan from the first of their times then fits them as well, and the first of
-    # equal fits (the scan's end, a reference's time, then the tears) took it (allpushed,
-    # a tear at 150 s of 600, seeds 2, 5 and 10: objects put 300 nm off); told apart again
-    yield from _tear_or_jump(ctx, picks.latest(), scan_more, take)
+    yield from narrow_tear(ctx, picks, take, _bootstrap_rows)
+    # the tear's probes and the earliest rows' references lie before a tear and are
+    # scanned last: a jump after the scan from the first of their times then fits as
+    # well, and the first of equal fits (the scan's end, a reference's time, then the
+    # tears) took it (allpushed, a tear at 150 s of 600, seeds 2, 5 and 10; mixed, 125 s
+    # of 500, seed 2: objects put 300 nm off): told apart again where the jump moved
+    told = yield from told_again(ctx, picks, scan_more, take, told, _bootstrap_rows)
     yield from _earliest_rows(ctx, picks, take)
+    if (yield from told_again(ctx, picks, scan_more, take, told, _bootstrap_rows)) != told and drift.scan.stepped:
+        yield from narrow_tear(ctx, picks, take, _bootstrap_rows)
     used, t_last = state["used"], state["t_last"]
     if (said := jump_text(drift.scan)) is not None:
         yield Msg("event", (said,), {"level": "warn"})
@@ -188,105 +182,6 @@ def bootstrap(ctx: RunContext, keep=None):
                         f"(+/- {drift.velocity_std():.3f}) from {used} references",))
     ctx.log_drift(t_last)
     yield from emit_drift(ctx, t_last)
-
-
-def _jumped(scan) -> None:
-    """Take a jump of the drift since the full scan began (while it was made, before the
-    references are scanned again, or while they are) into the model once they make it
-    evident (:data:`JUMP_GATE`); once in, place it again as references are left out or
-    added, and out again where it no longer passes the gate (mixed seed 3, a tear at 250 s
-    below every reference's row: the first references made a jump of 120 nm evident, the
-    ones scanned after them did not). Without it a jump is taken for velocity: 300 nm just
-    after a 500 s scan read as 1.1 nm/s, and relocalisations after it moved the estimate by
-    90-260 nm again and again (mixed seed 1; seeds 1-3 filled no slot)."""
-    _, _, stat, since = scan.jump_evidence()
-    if stat > JUMP_GATE:
-        scan.take_jump(since)
-    elif scan.stepped:
-        scan.drop_jump()
-
-
-def _tear_or_jump(ctx: RunContext, latest, scan_more, take):
-    """Scanned again latest row first, references fit a jump from one's time and a tear
-    between two's rows alike (the same ones carry it), which put the full scan's rows
-    differently (mixed seed 1, a tear at 250 s taken for a jump after the scan: the run
-    relocalised back and forth by 300 nm). Where a jump after the scan was taken, one more
-    reference of the latest rows, scanned after it, carries it or not: looked for where
-    each puts it, with no widened search (that took a neighbour for it, mixed seed 10)."""
-    scan = ctx.drift.scan
-    if not (scan.stepped and scan.tau_jump > scan.tau_end):
-        return
-    after, tear = scan.tau_jump, scan.jump_evidence(tears_only=True)[3]
-    again = _scanned_before(scan, after, ctx.drift.epoch)
-    for (kind, rid, seen_t), anew in itertools.chain(((p, False) for p in latest), ((r, True) for r in again)):
-        for since in (after, tear) if tear < scan.tau_end else (after,):
-            scan.take_jump(since)
-            before = len(scan.rows)
-            if anew:      # kept apart: its first scan, before the jump, carries none
-                scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t, widen=False)
-                if scanned is not None:
-                    take(kind, rid, scanned, key=(kind, rid, "again"))
-            else:
-                yield from scan_more([(kind, rid, seen_t)], widen=False)
-            if len(scan.rows) > before:
-                _jumped(scan)
-                return
-    _jumped(scan)
-
-
-def _scanned_before(scan, after: float, ep: float):
-    """References of the latest rows scanned again before ``after`` (s after the epoch),
-    latest row first, at most :data:`~.bootstrap_picks.TRIES`: where no unscanned pick of
-    the latest rows is left, one of these scanned once more tells a jump at ``after`` (it
-    now carries it) from a tear (it does not) as well (allpushed seed 8, a tear at 300 s,
-    nine particles: taken for a jump after the scan, the four references of the latest
-    rows were put 300 nm from where they lay)."""
-    for (kind, rid), row in scanned_before(scan, after, bootstrap_picks.TRIES):
-        yield kind, rid, row + ep
-
-
-def _narrow_tear(ctx: RunContext, picks, take):
-    """A tear of the full scan is placed halfway between the rows of the two references
-    around it, and the objects on the rows between may lie on its other side, moved by
-    the jump where they were not or not where they were (scale300, a tear halfway through
-    a 2191 s scan: 1-18 objects 280-315 nm off at the bootstrap's end, seeds 1-10). So
-    the particle of those rows nearest halfway with room about it on either side
-    (:data:`TEAR_ROOM`) is looked for where each side puts it, with no widened search,
-    and the sighting nearer its side's place kept: it halves the rows the tear may lie in.
-    Both sides are looked at, since a neighbour, or an object the torn scan did not show,
-    can be found where the wrong side puts it (scale300 seed 3: one 45 nm from there, while
-    the object lay 5 nm from the other side's place). Up to :data:`TEAR_PROBES` objects, until no unscanned
-    particle lies between."""
-    scan, ep = ctx.drift.scan, ctx.drift.epoch
-    for _ in range(TEAR_PROBES):
-        band = tear_band(scan)
-        cands = picks.between(band[0] + ep, band[1] + ep) if band else []
-        if not cands:
-            return
-        a, b = band
-        room = bootstrap_picks.spots_room(ctx.belief, ctx.refs.first_seen, [c[1] for c in cands], scan.jump)
-        mid = 0.5 * (a + b)
-        kind, rid, seen_t = pick = min(cands, key=lambda c: (room[c[1]] < TEAR_ROOM, abs(c[2] - ep - mid), c[1]))
-        picks.take(pick)
-        tau, placed = seen_t - ep, scan.tau_jump
-        seen = []
-        for since in (0.5 * (a + tau), 0.5 * (tau + b)):     # its row after the tear, before it
-            scan.take_jump(since)
-            t = yield Msg("clock")
-            where = ctx.position(rid) + ctx.offset(t)
-            scanned = yield from _bootstrap_rows(ctx, kind, rid, seen_t, widen=False)
-            if scanned is not None:
-                seen.append((math.dist(scanned[2][1].at, where), since, scanned))
-        scan.take_jump(placed)
-        if seen:
-            _, since, scanned = min(seen, key=lambda s: s[0])
-            scan.take_jump(since)
-            take(kind, rid, scanned)
-        _jumped(scan)
-        side = "not found on either side of it" if not seen else \
-            f"seen on the rows {'after' if since < tau else 'before'} it"
-        yield Msg("event", (f"bootstrap: {rid}, on a row of {seen_t:.0f} s between references' rows of "
-                            f"{a + ep:.0f} and {b + ep:.0f} s around the tear, {side}",))
 
 
 def _earliest_rows(ctx: RunContext, picks, take):

@@ -325,15 +325,18 @@ def _jump_row(events) -> float:
     return float(jumped.split("about its row of ")[1].split(" s")[0])
 
 
-def test_a_tear_the_probes_of_its_rows_made_look_like_a_jump_after_the_scan_is_told_apart_again():
-    """allpushed seed 2, 300 nm at 150 s of the 600 s scan: the references before the tear
-    are scanned last, so once a probe of the tear's rows is in, a jump after the scan from
-    the first of their times fits them as well, and the first of equal fits took it: every
-    object on the rows after the tear was put 300 nm off, and no slot was filled. A
-    reference of the latest rows scanned once more tells the two apart."""
-    events = _first_estimate(2, -450.0)
-    assert abs(_jump_row(events) - 150.0) < 20.0
-    assert any(t.startswith("bootstrap:") and "around the tear" in t for t in events.texts), events.texts
+@pytest.mark.parametrize("family, after, at, by", [("allpushed", -450.0, 150.0, "around the tear"),
+                                                   ("mixed", -375.0, 125.0, "since the full scan began")])
+def test_a_tear_the_last_references_made_look_like_a_jump_after_the_scan_is_told_apart_again(family, after, at, by):
+    """Seed 2, 300 nm a quarter of the way through the full scan: the references before the
+    tear are scanned last, so once one more is in (allpushed: a probe of the tear's rows;
+    mixed: a reference of the earliest rows), a jump after the scan from the first of their
+    times fits them as well, and the first of equal fits took it: every object on the rows
+    after the tear was put 300 nm off (allpushed: no slot filled). A reference of the
+    latest rows scanned once more tells the two apart."""
+    events = _first_estimate(2, after, family)
+    assert abs(_jump_row(events) - at) < 20.0
+    assert any(t.startswith("bootstrap:") and by in t for t in events.texts), events.texts
 
 
 @pytest.mark.parametrize("seed, probed", [(1, False), (7, True)])
