@@ -139,7 +139,7 @@ class Assembly:
             return t0 + (min(max(y * pixels / region_side, 0.0), pixels - 1.0) + 0.5) * line_time
 
         keep = None if self.layout.marks or self.plan_options.align == "none" else \
-            KeepoutWitness(self.layout, env.obstacles, self.layout.area, row_time, area.resolution)
+            KeepoutWitness(self.layout, env.obstacles, row_time, area.resolution)
         yield from bootstrap(ctx, keep)
         yield from self._register(env, row_time, area.resolution)
         # the obstacles too (electrodes: a slot beside one is planned against where it is)

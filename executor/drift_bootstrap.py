@@ -163,7 +163,7 @@ def bootstrap(ctx: RunContext, keep=None):
     # of 500, seed 2: objects put 300 nm off): told apart again where the jump moved
     told = yield from told_again(ctx, picks, scan_more, take, told, _bootstrap_rows)
     yield from _earliest_rows(ctx, picks, take)
-    if (yield from told_again(ctx, picks, scan_more, take, told, _bootstrap_rows)) != told and drift.scan.stepped:
+    if (yield from told_again(ctx, picks, scan_more, take, told, _bootstrap_rows)) != told:   # a tear now?
         yield from narrow_tear(ctx, picks, take, _bootstrap_rows)
     used, t_last = state["used"], state["t_last"]
     if (said := jump_text(drift.scan)) is not None:

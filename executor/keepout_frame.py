@@ -57,19 +57,18 @@ CORNER_STD = 10.0
 @dataclass(frozen=True)
 class KeepoutWitness:
     """What :func:`witness` needs of the run: the layout (in the scan's frame: without
-    marks), the obstacles the full scan showed, when a full-scan height ``y`` (nm) was
-    scanned (``row_time``, instrument s) and the scan's pixel size (nm)."""
+    marks; its area is the scan's), the obstacles the full scan showed, when a full-scan
+    height ``y`` (nm) was scanned (``row_time``, instrument s) and the scan's pixel size (nm)."""
 
     layout: Layout
     obstacles: tuple
-    area: tuple[float, float]
     row_time: object
     resolution: float
 
     def pairs(self, scan, epoch: float):
-        """``(transform, [(keep-out corner, image corner, τ)])``: the keep-outs registered
-        to the obstacles with each obstacle corner put back by ``scan``'s drift of its row
-        (τ: s after ``epoch``); None where they do not register."""
+        """``(transform, [(keep-out corner, obstacle corner put back, image corner, τ)])``:
+        the keep-outs registered to the obstacles with each obstacle corner put back by
+        ``scan``'s drift of its row (τ: s after ``epoch``); None where they do not register."""
         from nanoasm.world.environment import Environment
 
         raw = {}
@@ -81,7 +80,7 @@ class KeepoutWitness:
             return float(q[0]), float(q[1])
 
         probe = replace(self.layout, keepouts=(), marks=self.layout.keepouts)
-        env = Environment(self.area, (), tuple(self.obstacles), None)
+        env = Environment(self.layout.area, (), tuple(self.obstacles), None)
         try:
             al = register(probe, env, resolution=self.resolution, moved=moved)
         except InputError:
@@ -90,7 +89,7 @@ class KeepoutWitness:
         for mark, found in al.pairs:
             seen = raw.get((round(found[0], 6), round(found[1], 6)))
             if seen is not None:
-                out.append((mark, *seen))
+                out.append((mark, found, *seen))
         return al.transform, out
 
 
@@ -109,13 +108,12 @@ def witness(ctx, keep: KeepoutWitness | None, jumped):
     transform, pairs = got
     if len(pairs) < 3 or abs(transform.rotation) > MAX_TURN:
         return False
-    off = np.array([np.asarray(img) - scan.offset(tau) - np.asarray(mark) for mark, img, tau in pairs])
-    mean = off.mean(axis=0)
+    mean = np.mean([np.subtract(found, mark) for mark, found, _, _ in pairs], axis=0)
     gate = FRAME_GATE * keep.layout.tolerance.position
     if math.hypot(*mean) <= gate:
         return False
     var = max(CORNER_STD, transform.residual) ** 2
-    for k, (mark, img, tau) in enumerate(pairs):
+    for k, (mark, _, img, tau) in enumerate(pairs):
         d = np.asarray(img) - np.asarray(mark) - scan.creep_at(tau)
         for n in ((1.0, 0.0), (0.0, 1.0)):
             scan.measure(np.array(n), float(np.dot(n, d)), tau, 0.0, var, key=("keepout", f"k{k + 1}"))
