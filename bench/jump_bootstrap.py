@@ -86,9 +86,9 @@ def main(argv: list[str]) -> int:
             continue
         v_true = np.asarray(scene.params.drift.velocity) + np.asarray(change.acceleration) * got["t"]
         took = got.get("jump", "none").split(": taken")[0].replace("the drift jumped by ", "")
+        off = f"{got['off'][0]} ({got['off'][1]:.0f})" if "off" in got else "-"    # no estimate by the bootstrap
         print(f"| {seed} | {at} | {got['t']:.0f} | {np.hypot(*got['offset']):.1f} "
-              f"| {np.hypot(*(got['velocity'] - v_true)):.3f} | {took} | {got['off'][0]} ({got['off'][1]:.0f}) |",
-              flush=True)
+              f"| {np.hypot(*(got['velocity'] - v_true)):.3f} | {took} | {off} |", flush=True)
     return 0
 
 

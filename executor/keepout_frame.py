@@ -24,9 +24,19 @@ row ``τ`` since the scan began. The bootstrap's jump test
 (:func:`~.scan_jump.evidence`) then weighs a tear before their rows against the others,
 as it weighs any reference.
 
+A tear within the obstacles' own rows moves their later corners and not the earlier
+ones: the keep-outs then fit the obstacles as well at two places, and the registration
+fails as ambiguous (:class:`~nanoasm.planner.alignment.AmbiguousMatch`). Two such fits
+that share no corner, whose rows lie one side and the other, and whose corners come in
+the same order in both (:func:`torn_sides`), are read as the two sides of a tear, and
+the corners of both become references (allpushed seed 1, 300 nm at 300 s between the
+electrodes' lower and upper corners, with no reference before it: the estimate was 303
+nm off, now 2.2 nm).
+
 Where the keep-outs agree with the obstacles, or are not their outlines (no registration
-of at least three corners within the layout's tolerance), or the layout has marks (it is
-registered to them instead), or ``--no-align`` was given, nothing is added.
+of at least three corners within the layout's tolerance, nor two sides of a tear), or the
+layout has marks (it is registered to them instead), or ``--no-align`` was given, nothing
+is added.
 """
 
 from __future__ import annotations
@@ -38,7 +48,7 @@ import numpy as np
 
 from nanoasm.cad.layout import Layout
 from nanoasm.errors import InputError
-from nanoasm.planner.alignment import register
+from nanoasm.planner.alignment import AmbiguousMatch, register
 
 from .engine import Msg
 
@@ -52,6 +62,8 @@ MAX_TURN = 1.0
 #: Least standard deviation (nm) of a matched corner's components: the identified outline
 #: is the full scan's, at its pixels, rounded by the tip.
 CORNER_STD = 10.0
+#: Corners of two registrations this close (nm) are the same corner.
+SAME_CORNER = 20.0
 
 
 @dataclass(frozen=True)
@@ -66,9 +78,11 @@ class KeepoutWitness:
     resolution: float
 
     def pairs(self, scan, epoch: float):
-        """``(transform, [(keep-out corner, obstacle corner put back, image corner, τ)])``:
-        the keep-outs registered to the obstacles with each obstacle corner put back by
-        ``scan``'s drift of its row (τ: s after ``epoch``); None where they do not register."""
+        """The keep-outs registered to the obstacles, each obstacle corner put back by
+        ``scan``'s drift of its row (τ: s after ``epoch``): a list of ``(transform,
+        [(keep-out corner, obstacle corner put back, image corner, τ)])``, one for the
+        registration, or one for each side of a tear (:func:`torn_sides`); None where they
+        do not register."""
         from nanoasm.world.environment import Environment
 
         raw = {}
@@ -82,15 +96,59 @@ class KeepoutWitness:
         probe = replace(self.layout, keepouts=(), marks=self.layout.keepouts)
         env = Environment(self.layout.area, (), tuple(self.obstacles), None)
         try:
-            al = register(probe, env, resolution=self.resolution, moved=moved)
+            fits = (register(probe, env, resolution=self.resolution, moved=moved),)
+        except AmbiguousMatch as err:
+            fits = err.fits
         except InputError:
             return None
-        out = []
-        for mark, found in al.pairs:
-            seen = raw.get((round(found[0], 6), round(found[1], 6)))
-            if seen is not None:
-                out.append((mark, found, *seen))
-        return al.transform, out
+
+        def seen(al):
+            out = []
+            for mark, found in al.pairs:
+                got = raw.get((round(found[0], 6), round(found[1], 6)))
+                if got is not None:
+                    out.append((mark, found, *got))
+            return al.transform, out
+
+        groups = [seen(al) for al in fits]
+        return groups if len(groups) == 1 else torn_sides(groups)
+
+
+def torn_sides(groups):
+    """Rival registrations read as the two sides of a tear, ordered by row, or None.
+
+    Two of them are sides of a tear when each has at least three corners turned by at most
+    :data:`MAX_TURN`, they match no keep-out corner and no obstacle corner in common
+    (within :data:`SAME_CORNER`), the rows of one all come before the rows of the other,
+    and their keep-out corners come in the same order along the slow axis as their
+    obstacle corners (a jump moves every row after it alike; a repeated outline matched to
+    its twin crosses them). Of several such pairs, the one whose sides lie nearest each
+    other (the smallest jump)."""
+    best = None
+    for i, (ta, a) in enumerate(groups):
+        for tb, b in groups[i + 1:]:
+            if min(len(a), len(b)) < 3 or max(abs(ta.rotation), abs(tb.rotation)) > MAX_TURN or _shared(a, b):
+                continue
+            (t0, early), (t1, late) = sorted(((ta, a), (tb, b)), key=lambda tg: min(p[3] for p in tg[1]))
+            if max(p[3] for p in early) >= min(p[3] for p in late):
+                continue
+            if (max(p[0][1] for p in early) - min(p[0][1] for p in late)) * (
+                    max(p[1][1] for p in early) - min(p[1][1] for p in late)) <= 0:
+                continue
+            jump = math.dist(t0.translation, t1.translation)
+            if best is None or jump < best[0]:
+                best = (jump, [(t0, early), (t1, late)])
+    return None if best is None else best[1]
+
+
+def _shared(a, b) -> bool:
+    """Whether two registrations' pairs share a keep-out corner (each fit grows them by
+    its own broadening) or an obstacle corner."""
+    for i in (0, 1):
+        pa, pb = (np.array([p[i] for p in g], float) for g in (a, b))
+        if np.hypot(*(pa[:, None, :] - pb[None, :, :]).transpose(2, 0, 1)).min() <= SAME_CORNER:
+            return True
+    return False
 
 
 def witness(ctx, keep: KeepoutWitness | None, jumped):
@@ -102,24 +160,31 @@ def witness(ctx, keep: KeepoutWitness | None, jumped):
         return False
     drift = ctx.drift
     scan, ep = drift.scan, drift.epoch
-    got = keep.pairs(scan, ep)
-    if got is None:
+    groups = keep.pairs(scan, ep)
+    if groups is None:
         return False
-    transform, pairs = got
-    if len(pairs) < 3 or abs(transform.rotation) > MAX_TURN:
+    if any(len(pairs) < 3 or abs(transform.rotation) > MAX_TURN for transform, pairs in groups):
         return False
-    mean = np.mean([np.subtract(found, mark) for mark, found, _, _ in pairs], axis=0)
+    means = [np.mean([np.subtract(found, mark) for mark, found, _, _ in pairs], axis=0) for _, pairs in groups]
     gate = FRAME_GATE * keep.layout.tolerance.position
-    if math.hypot(*mean) <= gate:
+    far = max(range(len(means)), key=lambda i: math.hypot(*means[i]))
+    if math.hypot(*means[far]) <= gate:
         return False
-    var = max(CORNER_STD, transform.residual) ** 2
-    for k, (mark, _, img, tau) in enumerate(pairs):
-        d = np.asarray(img) - np.asarray(mark) - scan.creep_at(tau)
-        for n in ((1.0, 0.0), (0.0, 1.0)):
-            scan.measure(np.array(n), float(np.dot(n, d)), tau, 0.0, var, key=("keepout", f"k{k + 1}"))
+    k = 0
+    for transform, pairs in groups:
+        var = max(CORNER_STD, transform.residual) ** 2
+        for mark, _, img, tau in pairs:
+            k += 1
+            d = np.asarray(img) - np.asarray(mark) - scan.creep_at(tau)
+            for n in ((1.0, 0.0), (0.0, 1.0)):
+                scan.measure(np.array(n), float(np.dot(n, d)), tau, 0.0, var, key=("keepout", f"k{k}"))
     jumped(scan)
+    mean, corners = means[far], sum(len(pairs) for _, pairs in groups)
+    torn = "" if len(groups) == 1 else (
+        f" (their corners on rows scanned before {groups[1][1][0][3] + ep:.0f} s register apart from the later "
+        f"ones, {math.hypot(*np.subtract(means[1], means[0])):.0f} nm apart: the scan torn between)")
     yield Msg("event", (f"the layout's keep-outs lie {mean[0]:+.0f}, {mean[1]:+.0f} nm from the obstacles the full "
-                        f"scan shows, as the drift references place them ({len(pairs)} corners; more than "
-                        f"{gate:g} nm): their corners taken as references of the drift since the scan began, "
+                        f"scan shows, as the drift references place them ({corners} corners; more than "
+                        f"{gate:g} nm){torn}: their corners taken as references of the drift since the scan began, "
                         f"a tear of the scan before the references' rows weighed",), {"level": "warn"})
     return True

@@ -21,7 +21,8 @@ def evidence(sd, tears_only: bool = False) -> tuple[np.ndarray, np.ndarray, floa
     the references best: the scan's end; a reference's time as it was scanned again (a
     jump then leaves the first ones without it); halfway between two references' rows
     of the full scan (a jump while it was made tears it: the rows after carry it, and
-    the references on them are seen where the scan has them). At least
+    the references on them are seen where the scan has them; a reference of the drift
+    since the scan began, a keep-out's corner, has its row among them). At least
     :data:`JUMP_CARRIERS` references carry a jump while they are scanned again and two
     do not, two carry one at the scan's end, and two carry one in the scan and two not:
     one reference alone before a jump is no evidence of one but a reference the others
@@ -37,7 +38,10 @@ def evidence(sd, tears_only: bool = False) -> tuple[np.ndarray, np.ndarray, floa
         return none
     seen = list(sd._seen.values())
     after = sorted({t1 for comps in seen for _, _, t1 in comps})[1:]
-    row_times = sorted({t0 for comps in seen for _, t0, _ in comps})
+    # rows of the full scan: the references' first sightings, and the later ends of those
+    # within it (a keep-out corner measures its row's drift since the scan began)
+    row_times = sorted({t0 for comps in seen for _, t0, _ in comps}
+                       | {t1 for comps in seen for _, _, t1 in comps if t1 <= sd.tau_end})
     best = None
     tears = [0.5 * (a + b) for a, b in zip(row_times, row_times[1:])]
     for since in (tears if tears_only else [sd.tau_end, *after, *tears]):

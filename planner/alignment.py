@@ -24,6 +24,9 @@ mark corners are matched (too few marks found), when the residual is above the
 layout's position tolerance, or when the match is ambiguous: a distinct transform
 (one moving some mark corner by more than the gate) matching at least
 ``AMBIGUOUS_SHARE`` as many corners within the tolerance (symmetric or repeated marks).
+That failure is an :class:`AmbiguousMatch`, which keeps the rival registrations (a scan
+torn by a jump of the drift shows the marks' early corners at one place and their late
+ones at another: :mod:`nanoasm.executor.keepout_frame` reads it so).
 
 :func:`in_scan_frame` is what ``plan``, ``dry-run`` and ``run`` call: the layout
 registered when it has marks (and registration is not switched off), mapped into the
@@ -89,6 +92,16 @@ class Alignment:
     def to_doc(self) -> dict:
         """For the run's subscribers (the CLI prints it)."""
         return {"text": self.line(), **self.transform.to_dict()}
+
+
+class AmbiguousMatch(InputError):
+    """The marks fit the scan as well at distinct transforms; ``fits`` holds each of them
+    as an :class:`Alignment`, the best first (the message is the user's, as any
+    :class:`~nanoasm.errors.InputError`'s)."""
+
+    def __init__(self, source: str | None, key: str | None, problem: str, fits: tuple[Alignment, ...]):
+        super().__init__(source, key, problem)
+        self.fits = fits
 
 
 @dataclass(frozen=True)
@@ -264,18 +277,23 @@ def register(layout: Layout, env: Environment, *, scale: bool = False, resolutio
     if best.residual > tol:
         raise fail(f"registration residual {best.residual:.1f} nm is above the layout's position tolerance "
                    f"{tol:g} nm ({n} mark corners matched; {best.transform.line()})")
-    for other in fits:
-        if other is best or other.residual > tol or len(other.pairs) < AMBIGUOUS_SHARE * n:
-            continue
-        moved = np.hypot(*(best.transform.apply(m.src) - other.transform.apply(m.src)).T).max()
-        if moved > tight:
-            raise fail(f"ambiguous match: the marks fit the scan as well at {best.transform.line()} ({n} corners) "
-                       f"as at {other.transform.line()} ({len(other.pairs)} corners); add a mark that tells them "
-                       "apart, or give --no-align")
-    matched_marks = len({marks[i].outline for i, _ in best.pairs})
-    pairs = tuple(((float(m.src[i, 0] + best.grown * m.miter[i, 0]), float(m.src[i, 1] + best.grown * m.miter[i, 1])),
-                   (float(m.dst[j, 0]), float(m.dst[j, 1]))) for i, j in best.pairs)
-    return Alignment(rounded(best.transform), n, matched_marks, n_marks, best.grown, pairs)
+    rivals = [other for other in fits if other is not best and other.residual <= tol
+              and len(other.pairs) >= AMBIGUOUS_SHARE * n
+              and np.hypot(*(best.transform.apply(m.src) - other.transform.apply(m.src)).T).max() > tight]
+    if rivals:
+        other = rivals[0]
+        raise AmbiguousMatch(source, "mark", f"ambiguous match: the marks fit the scan as well at "
+                             f"{best.transform.line()} ({n} corners) as at {other.transform.line()} "
+                             f"({len(other.pairs)} corners); add a mark that tells them apart, or give --no-align",
+                             tuple(_alignment(f, m, marks, n_marks) for f in (best, *rivals)))
+    return _alignment(best, m, marks, n_marks)
+
+
+def _alignment(fit: _Fit, m: _Matcher, marks: list[Corner], n_marks: int) -> Alignment:
+    pairs = tuple(((float(m.src[i, 0] + fit.grown * m.miter[i, 0]), float(m.src[i, 1] + fit.grown * m.miter[i, 1])),
+                   (float(m.dst[j, 0]), float(m.dst[j, 1]))) for i, j in fit.pairs)
+    return Alignment(rounded(fit.transform), len(fit.pairs), len({marks[i].outline for i, _ in fit.pairs}),
+                     n_marks, fit.grown, pairs)
 
 
 def in_scan_frame(layout: Layout, env: Environment, align: str = "rigid", *, resolution: float = RESOLUTION,

@@ -359,6 +359,57 @@ def test_a_tear_before_every_reference_is_told_by_the_layouts_keep_outs(seed, pr
         assert row < 185.0          # before the first object's and corner's rows
 
 
+def test_a_tear_inside_the_electrodes_rows_is_told_by_their_corners_either_side():
+    """allpushed seed 1, 300 nm at 300 s, halfway through the scan and between the rows of
+    the electrodes' lower and upper corners, with no reference before it: the keep-outs fit
+    the obstacles as well 300 nm apart (the lower corners at one place, the upper at
+    another), so they did not register, nothing witnessed the tear, and the run worked
+    300 nm from the layout's frame (4 of 9 slots filled). Read as the two sides of a
+    tear, both sets of corners are references, and the tear lies between their rows."""
+    events = _first_estimate(1, -300.0)
+    [seen] = [t for t in events.texts if t.startswith("the layout's keep-outs lie")]
+    assert "the scan torn between" in seen, seen
+    assert 207.0 < _jump_row(events) < 447.0          # the two sides' corner rows
+
+
+def test_a_tear_the_references_misplace_is_placed_again_by_the_keep_outs_rows():
+    """allpushed seed 4, 300 nm at 450 s: no reference's row lies between 226 and 466 s,
+    and the tear was put at 346 s, which moved the objects between by the jump (o6 298 nm
+    off). The electrodes' upper corners (rows of 399 s) put back by that model lie 300 nm
+    from their keep-outs, the lower ones (198 s) in place: as references of the drift
+    since the scan began they place the tear after 399 s, once a tear may lie between a
+    corner's row and the next reference's (at first the keep-outs' rows were not among the
+    tear's places, and the best of the others put a jump of 180 nm at 42 s)."""
+    events = _first_estimate(4, -150.0)
+    [seen] = [t for t in events.texts if t.startswith("the layout's keep-outs lie")]
+    assert "the scan torn between" in seen, seen
+    assert 399.0 < _jump_row(events) < 466.0
+
+
+def _side(dy: float, y: float, tau: float, xs=(0.0, 1000.0, 2000.0)):
+    """A registration's pairs of corners along ``y`` (layout) found ``dy`` higher at ``tau`` s."""
+    from nanoasm.cad.frame import Similarity
+    return (Similarity(0.0, (0.0, dy), 1.0, 2.0), [((x, y), (x, y + dy), (x, y + dy), tau) for x in xs])
+
+
+def test_rival_registrations_are_read_as_the_sides_of_a_tear_only_where_a_jump_explains_them():
+    """:func:`torn_sides`: the layout's corners at y = 0 found in place (rows of 100 s) and
+    those at y = 2000 found 300 nm higher (rows of 400 s) are two sides of a tear, in row
+    order whichever fit came first; the outline's twin matched (the lower corners to the
+    upper ones: crossed in y), fits sharing a corner, fits whose rows interleave, or two
+    corners a side, are not."""
+    from nanoasm.executor.keepout_frame import torn_sides
+    low, high = _side(0.0, 0.0, 100.0), _side(300.0, 2000.0, 400.0)
+    assert torn_sides([high, low]) == [low, high]
+    crossed = [_side(2300.0, 0.0, 400.0), _side(-2000.0, 2000.0, 100.0)]
+    assert torn_sides(crossed) is None
+    assert torn_sides([low, high, *crossed]) == [low, high]          # the nearest pair of four
+    assert torn_sides([low, _side(300.0, 0.0, 400.0)]) is None        # the same keep-out corners
+    assert torn_sides([low, _side(290.0, 10.0, 400.0)]) is None       # the same, grown 10 nm more
+    assert torn_sides([low, _side(300.0, 2000.0, 100.0)]) is None     # rows not apart
+    assert torn_sides([low, _side(300.0, 2000.0, 400.0, xs=(0.0, 1000.0))]) is None
+
+
 def test_keep_outs_that_agree_with_the_obstacles_add_nothing():
     """Without a jump the keep-outs lie within a few nm of the obstacles: not taken."""
     scene, layout = family_case("allpushed", 7)
