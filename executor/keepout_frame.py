@@ -181,8 +181,8 @@ def witness(ctx, keep: KeepoutWitness | None, jumped):
     jumped(scan)
     mean, corners = means[far], sum(len(pairs) for _, pairs in groups)
     torn = "" if len(groups) == 1 else (
-        f" (their corners on rows scanned before {groups[1][1][0][3] + ep:.0f} s register apart from the later "
-        f"ones, {math.hypot(*np.subtract(means[1], means[0])):.0f} nm apart: the scan torn between)")
+        f" (their corners on rows scanned before {min(p[3] for p in groups[1][1]) + ep:.0f} s register apart "
+        f"from the later ones, {math.hypot(*np.subtract(means[1], means[0])):.0f} nm apart: the scan torn between)")
     yield Msg("event", (f"the layout's keep-outs lie {mean[0]:+.0f}, {mean[1]:+.0f} nm from the obstacles the full "
                         f"scan shows, as the drift references place them ({corners} corners; more than "
                         f"{gate:g} nm){torn}: their corners taken as references of the drift since the scan began, "
