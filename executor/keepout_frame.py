@@ -81,8 +81,8 @@ class KeepoutWitness:
         """The keep-outs registered to the obstacles, each obstacle corner put back by
         ``scan``'s drift of its row (τ: s after ``epoch``): a list of ``(transform,
         [(keep-out corner, obstacle corner put back, image corner, τ)])``, one for the
-        registration, or one for each side of a tear (:func:`torn_sides`); None where they
-        do not register."""
+        registration, or one for each side of a tear (:func:`torn_sides`), each
+        :func:`_usable`; None where they do not register so."""
         from nanoasm.world.environment import Environment
 
         raw = {}
@@ -111,23 +111,31 @@ class KeepoutWitness:
             return al.transform, out
 
         groups = [seen(al) for al in fits]
-        return groups if len(groups) == 1 else torn_sides(groups)
+        if len(groups) > 1:
+            return torn_sides(groups)
+        return groups if _usable(*groups[0]) else None
+
+
+def _usable(transform, pairs) -> bool:
+    """Whether a registration may witness a shift of the frame: at least three corners
+    found again, turned by at most :data:`MAX_TURN`."""
+    return len(pairs) >= 3 and abs(transform.rotation) <= MAX_TURN
 
 
 def torn_sides(groups):
     """Rival registrations read as the two sides of a tear, ordered by row, or None.
 
-    Two of them are sides of a tear when each has at least three corners turned by at most
-    :data:`MAX_TURN`, they match no keep-out corner and no obstacle corner in common
-    (within :data:`SAME_CORNER`), the rows of one all come before the rows of the other,
+    Two of them are sides of a tear when each is :func:`_usable`, they match no keep-out
+    corner and no obstacle corner in common (within :data:`SAME_CORNER`), the rows of one
+    all come before the rows of the other,
     and their keep-out corners come in the same order along the slow axis as their
     obstacle corners (a jump moves every row after it alike; a repeated outline matched to
     its twin crosses them). Of several such pairs, the one whose sides lie nearest each
     other (the smallest jump)."""
-    best = None
+    best, groups = None, [g for g in groups if _usable(*g)]
     for i, (ta, a) in enumerate(groups):
         for tb, b in groups[i + 1:]:
-            if min(len(a), len(b)) < 3 or max(abs(ta.rotation), abs(tb.rotation)) > MAX_TURN or _shared(a, b):
+            if _shared(a, b):
                 continue
             (t0, early), (t1, late) = sorted(((ta, a), (tb, b)), key=lambda tg: min(p[3] for p in tg[1]))
             if max(p[3] for p in early) >= min(p[3] for p in late):
@@ -162,8 +170,6 @@ def witness(ctx, keep: KeepoutWitness | None, jumped):
     scan, ep = drift.scan, drift.epoch
     groups = keep.pairs(scan, ep)
     if groups is None:
-        return False
-    if any(len(pairs) < 3 or abs(transform.rotation) > MAX_TURN for transform, pairs in groups):
         return False
     means = [np.mean([np.subtract(found, mark) for mark, found, _, _ in pairs], axis=0) for _, pairs in groups]
     gate = FRAME_GATE * keep.layout.tolerance.position

@@ -362,7 +362,7 @@ def test_a_tear_before_every_reference_is_told_by_the_layouts_keep_outs(seed, pr
 def test_a_tear_inside_the_electrodes_rows_is_told_by_their_corners_either_side():
     """allpushed seed 1, 300 nm at 300 s, halfway through the scan and between the rows of
     the electrodes' lower and upper corners, with no reference before it: the keep-outs fit
-    the obstacles as well 300 nm apart (the lower corners at one place, the upper at
+    the obstacles as well 285 nm apart (the lower corners at one place, the upper at
     another), so they did not register, nothing witnessed the tear, and the run worked
     300 nm from the layout's frame (4 of 9 slots filled). Read as the two sides of a
     tear, both sets of corners are references, and the tear lies between their rows."""
@@ -374,7 +374,7 @@ def test_a_tear_inside_the_electrodes_rows_is_told_by_their_corners_either_side(
 
 def test_a_tear_the_references_misplace_is_placed_again_by_the_keep_outs_rows():
     """allpushed seed 4, 300 nm at 450 s: no reference's row lies between 226 and 466 s,
-    and the tear was put at 346 s, which moved the objects between by the jump (o6 298 nm
+    and the tear was put at 346 s, which moved the objects between by the jump (one 298 nm
     off). The electrodes' upper corners (rows of 399 s) put back by that model lie 300 nm
     from their keep-outs, the lower ones (198 s) in place: as references of the drift
     since the scan began they place the tear after 399 s, once a tear may lie between a
