@@ -84,21 +84,32 @@ class FrozenMoves:
     def _merge(self, now: float) -> None:
         """Merge each bin whose parent (twice as wide) is no wider than its age allows,
         level by level (a parent made may merge on in turn)."""
-        level = 0
-        while any(key[0] >= level for key in self.bins):
+        levels: dict[int, list] = {}        # each level's keys in the bins' order, parents made appended
+        for key in self.bins:
+            levels.setdefault(key[0], []).append(key)
+        level, top = 0, max(levels, default=-1)
+        while level <= top:
             w_parent = BIN0 * 2.0 ** (level + 1)
-            for key in [key for key in self.bins if key[0] == level]:
+            for key in levels.get(level, ()):
                 parent = (level + 1, key[1] // 2)
                 if now - (parent[1] + 1) * w_parent < BIN_AGE * w_parent:
                     continue
-                # M'_i = Σ_j C(i, j) M_j δ^(i-j), δ the old centre less the new
-                delta = self._centre(*key) - self._centre(*parent)
-                shifted = (_BINOMIAL * np.where(_LOWER, delta ** _EXPONENT, 0.0)) @ self.bins.pop(key)
-                if parent in self.bins:
-                    self.bins[parent] += shifted
-                else:
-                    self.bins[parent] = shifted
+                if self._merge_into(key, parent):
+                    levels.setdefault(level + 1, []).append(parent)
+                    top = max(top, level + 1)
             level += 1
+
+    def _merge_into(self, key: tuple[int, int], parent: tuple[int, int]) -> bool:
+        """Bin ``key``'s moments moved to ``parent``'s centre and added there; whether
+        ``parent`` is new."""
+        # M'_i = Σ_j C(i, j) M_j δ^(i-j), δ the old centre less the new
+        delta = self._centre(*key) - self._centre(*parent)
+        shifted = (_BINOMIAL * np.where(_LOWER, delta ** _EXPONENT, 0.0)) @ self.bins.pop(key)
+        if parent in self.bins:
+            self.bins[parent] += shifted
+            return False
+        self.bins[parent] = shifted
+        return True
 
     def _powers(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``d`` per bin, ``d^-k`` (k = 0..ORDER+1) and the moments, bins in key order (a

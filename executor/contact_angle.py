@@ -81,11 +81,16 @@ def baseline_slope(x: np.ndarray, sl_bar: np.ndarray, around: tuple[float, float
     given: a least-squares line; 0 when their x spans less than :data:`MIN_SPREAD`."""
     x, sl_bar = np.asarray(x, float), np.asarray(sl_bar, float)
     if around is not None:
-        near = (x >= around[0] - SLOPE_REACH) & (x <= around[1] + SLOPE_REACH)
+        near = _near(x, around)
         x, sl_bar = x[near], sl_bar[near]
     if x.size < 3 or float(np.ptp(x)) < MIN_SPREAD:
         return 0.0
     return float(np.polyfit(x, sl_bar, 1)[0])
+
+
+def _near(x: np.ndarray, around: tuple[float, float]) -> np.ndarray:
+    """Which of ``x`` lie within :data:`SLOPE_REACH` of the range ``around``."""
+    return (x >= around[0] - SLOPE_REACH) & (x <= around[1] + SLOPE_REACH)
 
 
 def contact_angle(sn_bar: np.ndarray, sl_bar: np.ndarray, reference: np.ndarray, window: np.ndarray,
@@ -139,13 +144,26 @@ def _onset(sn: np.ndarray, sl: np.ndarray, along: np.ndarray, lever: Cantilever,
     object met earlier than the plan put it (its place along the push is known worst).
     Looked for ``within`` nm of the start only (inf if it is not there): the force is
     smoothed over the samples up to there and the smoothing's reach beyond."""
-    gx, gy = _gains(lever)
-    first = np.arange(int(np.searchsorted(along, SETTLE, side="right")))     # along never falls
-    if first.size < 5:
-        first = np.arange(min(5, along.size))
+    return _onset_over(sn, sl, along, lever, within, *_onset_reach(along, within))
+
+
+def _onset_reach(along: np.ndarray, within: float) -> tuple[int, int, int]:
+    """What :func:`_onset` reads of samples at ``along``: the first ``n_first`` set its
+    level, it smooths over ``k`` samples, and it reads the first ``cut``."""
+    n_first = int(np.searchsorted(along, SETTLE, side="right"))     # along never falls
+    if n_first < 5:
+        n_first = min(5, along.size)
     per_nm = along.size / max(float(along[-1]), 1e-9)
     k = max(1, int(round(SMOOTH * per_nm)))
-    cut = max(min(int(np.searchsorted(along, within, side="right")) + k, along.size), int(first[-1]) + 1)
+    cut = max(min(int(np.searchsorted(along, within, side="right")) + k, along.size), n_first)
+    return n_first, k, cut
+
+
+def _onset_over(sn: np.ndarray, sl: np.ndarray, along: np.ndarray, lever: Cantilever, within: float,
+                n_first: int, k: int, cut: int) -> float:
+    """:func:`_onset` given its :func:`_onset_reach`."""
+    gx, gy = _gains(lever)
+    first = np.arange(n_first)
     sn, sl, along = sn[:cut], sl[:cut], along[:cut]
     fx, fy = gx * (sn - sn[first].mean()), gy * (sl - sl[first].mean())
     kernel = np.ones(k) / k
@@ -174,7 +192,7 @@ class PushSignals:
         self.push: list[tuple[np.ndarray, ...]] = []      # (S_n, S_l, x, y) of push samples
         self.lifted: list[tuple[np.ndarray, ...]] = []    # the same of lifted travel
         self._kept: _Contact | None = None                # the samples in contact, compensated, for a key
-        self._slope: tuple | None = None                  # the lifted samples compensated, for a key
+        self._slope: list | None = None                   # the lifted samples compensated, for a key
 
     def add(self, s_n, s_l, xy, pushing: np.ndarray, lifted: np.ndarray) -> None:
         """One chunk: raw signals, scanner ``xy`` ``(n, 2)`` nm, and which samples push
@@ -207,7 +225,7 @@ class PushSignals:
         if along[-1] < self.lead + WINDOW:           # too short to have both apart
             return None
         share = REFERENCE_SHARE * self.lead                 # an onset beyond share + SETTLE does not matter
-        end = min(share, _onset(sn, sl, along, lever, share + SETTLE) - SETTLE)
+        end = min(share, kept.onset(sn, sl, along, lever, share + SETTLE) - SETTLE)
         if end < MIN_REFERENCE:
             return None
         reference = np.arange(int(np.searchsorted(along, end, side="right")))          # along never falls
@@ -219,14 +237,20 @@ class PushSignals:
 
     def _lifted_slope(self, compensate, key, span) -> float:
         """:func:`baseline_slope` of the lifted samples about the contact's x ``span``,
-        compensated once for a ``key``."""
+        compensated once for a ``key``, and fitted again only when other samples lie near
+        the span."""
         got = self._slope
         if key is None or got is None or got[0] != (key, len(self.lifted)):
             ln, ll, lx, ly = (np.concatenate(c) for c in zip(*self.lifted))
-            got = ((key, len(self.lifted)), lx, compensate(ln, ll, np.column_stack([lx, ly]))[1])
+            got = [(key, len(self.lifted)), lx, compensate(ln, ll, np.column_stack([lx, ly]))[1], None]
             if key is not None:
                 self._slope = got
-        return baseline_slope(got[1], got[2], span)
+        if span is None:
+            return baseline_slope(got[1], got[2])
+        near = _near(got[1], span)
+        if got[3] is None or not np.array_equal(got[3][0], near):      # the same samples: the same fit
+            got[3] = (near, baseline_slope(got[1][near], got[2][near]))
+        return got[3][1]
 
 
 def _in_contact(compensate, level: float, s_n, s_l, x, y) -> tuple[np.ndarray, ...]:
@@ -245,6 +269,7 @@ class _Contact:
         self.key, self.chunks, self.n = key, 0, 0
         self.arrays = [np.empty(0) for _ in range(5)]        # S̄_n, S̄_l, x, y, along
         self.span: tuple[float, float] | None = None
+        self._onset: tuple | None = None                    # (what it read, the onset)
 
     def add(self, sn, sl, x, y) -> None:
         if not x.size:
@@ -264,6 +289,16 @@ class _Contact:
         for a, v in zip(self.arrays, (sn, sl, x, y, along)):
             a[self.n:end] = v
         self.n = end
+
+    def onset(self, sn, sl, along, lever: Cantilever, within: float) -> float:
+        """:func:`_onset` of the samples so far (:meth:`view`), kept while what it reads stays
+        the same: the samples only grow (keyed), so the same reach reads the same values."""
+        reach = _onset_reach(along, within)
+        if self.key is None:
+            return _onset_over(sn, sl, along, lever, within, *reach)
+        if self._onset is None or self._onset[0] != (reach, within, lever):
+            self._onset = ((reach, within, lever), _onset_over(sn, sl, along, lever, within, *reach))
+        return self._onset[1]
 
     def view(self) -> tuple[np.ndarray, ...]:
         """(S̄_n, S̄_l, x, along) so far (views)."""

@@ -104,23 +104,35 @@ def test_the_contact_onset_looked_for_near_the_start_only_ends_the_reference_whe
     assert ended > 100                                    # the onset ends many references early
 
 
-def _stream(rng, monitor: PushMonitor):
+def _stream(rng, monitor: PushMonitor, ahead: bool = False):
     """A push's chunks as a streamed push hands them over: lifted travel first, then
     samples pushing (a few in flight, below half the contact level), a contact force
     rising where the object is met, some lifted samples at the end. Yields ``(S_n, S_l,
-    xy, pushing, lifted)`` per chunk, and sometimes new free-air baselines first."""
+    xy, pushing, lifted)`` per chunk, and sometimes new free-air baselines first.
+    ``ahead``: the travel comes back from 1.5 µm ahead of the push, which speeds up as it
+    goes (the lifted samples near the push's span, and the samples a nm, change as it
+    grows)."""
     lead, n = rng.uniform(10.0, 40.0), int(rng.integers(200, 1500))
     length = rng.uniform(40.0, 300.0)
     x = np.linspace(-200.0, length, n) + rng.normal(0.0, 0.2, n)
+    if ahead:                           # the object met within the reference: an onset
+        lead, length = rng.uniform(4.0, 12.0), rng.uniform(300.0, 900.0)
+        travel = n // 4
+        x = np.concatenate([np.linspace(1500.0, -1.0, travel), length * np.linspace(0.0, 1.0, n - travel) ** 2])
+        x[travel:] += rng.normal(0.0, 0.05, n - travel)
     y = rng.normal(0.0, 0.3, n) + 0.01 * x
     lifted = x < 0.0
+    if ahead:
+        lifted = np.arange(n) < travel
     lifted[-int(rng.integers(0, 20)):] = True
     pushing = ~lifted
     met = x > lead
     level = monitor.level
-    sn = np.where(lifted, 0.01, level * (1.0 + rng.normal(0.0, 0.05, n)) + np.where(met, 0.02, 0.0))
+    jitter = 0.0005 if ahead else 0.05
+    sn = np.where(lifted, 0.01, level * (1.0 + rng.normal(0.0, jitter, n)) + np.where(met, 0.02, 0.0))
     sn[pushing & (rng.random(n) < 0.05)] = 0.1 * level            # in flight: not in contact
-    sl = rng.normal(0.3, 0.004, n) + np.where(met & pushing, rng.uniform(-0.3, 0.3), 0.0) + 1e-4 * x
+    side = rng.uniform(0.1, 0.3) * rng.choice([-1.0, 1.0]) if ahead else rng.uniform(-0.3, 0.3)
+    sl = rng.normal(0.3, 0.004, n) + np.where(met & pushing, side, 0.0) + 1e-4 * x
     i = 0
     while i < n:
         k = int(rng.integers(1, 150))
@@ -128,18 +140,20 @@ def _stream(rng, monitor: PushMonitor):
         i += k
 
 
+@pytest.mark.parametrize("ahead", [False, True])
 @pytest.mark.parametrize("seed", range(12))
-def test_the_angle_read_as_the_samples_come_is_the_whole_computations(seed):
+def test_the_angle_read_as_the_samples_come_is_the_whole_computations(seed, ahead):
     """:meth:`PushSignals.angle` with the monitor's baseline key (each chunk compensated
     once, the contact samples and their distance along the push grown as they come, the
-    windows read alone) gives the angle the whole computation gives from every sample,
-    to the last bit, after every chunk: also when the free-air baselines change between
-    reads (the key), and the level."""
+    windows read alone, the onset and the baseline's slope kept while what they read
+    stays the same) gives the angle the whole computation gives from every sample, to the
+    last bit, after every chunk: also when the free-air baselines change between reads
+    (the key), and the level."""
     rng = np.random.default_rng(seed)
     monitor = PushMonitor(50.0, lever=SEED_LEVER)
     fast, whole = PushSignals(LEAD), PushSignals(LEAD)
     read = 0
-    for sl_, sn, sl, xy, pushing, lifted in _stream(rng, monitor):
+    for sl_, sn, sl, xy, pushing, lifted in _stream(rng, monitor, ahead):
         if rng.random() < 0.05:
             monitor.set_baseline(sn[lifted][:30] + rng.normal(0, 0.01), sl[lifted][:30])
         for kept in (fast, whole):

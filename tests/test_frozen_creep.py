@@ -110,3 +110,40 @@ def test_history_offset_is_every_moves_creep_whatever_was_frozen():
     h = 1e-3
     numeric = (hist.frozen_offset(t + h) - hist.frozen_offset(t - h)) / (2.0 * h)
     assert np.allclose(hist.frozen_rate(t), numeric, rtol=1e-6) and np.abs(numeric).max() > 0.0
+
+
+def _merged_level_by_level(fm: FrozenMoves, now: float) -> None:
+    """:meth:`FrozenMoves._merge` as it was first written, each level's keys listed anew
+    from the bins: the order the kept-list merge must add in, to the bit."""
+    from nanoasm.drift.frozen_creep import BIN0, BIN_AGE
+
+    level = 0
+    while any(key[0] >= level for key in fm.bins):
+        w_parent = BIN0 * 2.0 ** (level + 1)
+        for key in [key for key in fm.bins if key[0] == level]:
+            parent = (level + 1, key[1] // 2)
+            if now - (parent[1] + 1) * w_parent >= BIN_AGE * w_parent:
+                fm._merge_into(key, parent)
+        level += 1
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.lists(st.tuples(st.floats(0.0, 3000.0), st.floats(-2e4, 2e4), st.floats(-2e4, 2e4)),
+                min_size=1, max_size=80),
+       st.floats(FROZEN_AGE, 300.0), st.floats(0.1, 40.0))
+def test_merging_keeps_the_bins_and_their_order_to_the_bit(moves, age, every):
+    """The merge that keeps each level's keys as it goes gives the bins, their moments to
+    the bit and their order, that listing each level anew gave."""
+    moves.sort()
+    times = np.array([m[0] for m in moves])
+    steps = np.array([m[1:] for m in moves]).reshape(-1, 2)
+    fast, slow, done = FrozenMoves(TAU), FrozenMoves(TAU), 0
+    slow._merge = lambda now: _merged_level_by_level(slow, now)
+    for now in np.arange(0.0, float(times.max()) + age + 2.0 * every, every):
+        j = int(np.searchsorted(times, now - age, side="right"))
+        for fm in (fast, slow):
+            fm.add(now, times[done:j], steps[done:j])
+        done = j
+        assert list(fast.bins) == list(slow.bins)
+        for key in fast.bins:
+            assert np.array_equal(fast.bins[key], slow.bins[key])
