@@ -72,7 +72,14 @@ def together(ctx: RunContext, ops: list[Operation], i: int, plan_options: PlanOp
     window = ops[i:i + LOOKAHEAD]
     ids = sorted({op.object for op in window})
     where = dict(zip(ids, ctx.positions(ids)))
-    areas = [_area(ctx, op, where[op.object], plan_options.tip_radius) for op in window]
+    areas: list[shapely.Polygon] = []
+
+    def area(j: int) -> shapely.Polygon:        # made as the look ahead reaches it (it stops at the limit)
+        while len(areas) <= j:
+            op = window[len(areas)]
+            areas.append(_area(ctx, op, where[op.object], plan_options.tip_radius))
+        return areas[j]
+
     margin = ctx.options.replan_after
     members = [0]
     for j in range(1, len(window)):
@@ -83,7 +90,7 @@ def together(ctx: RunContext, ops: list[Operation], i: int, plan_options: PlanOp
             continue
         # (a later push of an object starts where it is believed, inside its earlier
         # push's area: never brought forward over it, nor grouped with it)
-        if all(areas[j].distance(areas[k]) >= margin for k in range(j)):
+        if all(area(j).distance(area(k)) >= margin for k in range(j)):
             members.append(j)
     if len(members) == 1:
         return 1

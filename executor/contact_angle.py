@@ -58,8 +58,13 @@ class ContactAngle:
 
 
 def _mean_std(x: np.ndarray) -> tuple[float, float]:
-    """The mean of at least two samples and its standard error."""
-    return float(x.mean()), float(x.std(ddof=1)) / math.sqrt(x.size)
+    """The mean of at least two samples and its standard error: ``x.mean()`` and
+    ``x.std(ddof=1)``'s values, summed as numpy sums them (one sum for both, without
+    their dispatch)."""
+    n = x.size
+    mean = np.add.reduce(x) / n
+    d = x - mean
+    return float(mean), math.sqrt(float(np.add.reduce(d * d) / (n - 1))) / math.sqrt(n)
 
 
 def _gains(lever: Cantilever) -> tuple[float, float]:

@@ -163,3 +163,13 @@ def test_the_angle_read_as_the_samples_come_is_the_whole_computations(seed, ahea
         assert got == want
         read += got is not None
     assert read > 0                            # angles were read, not only None
+
+
+@given(st.lists(st.floats(-1e3, 1e3, allow_nan=False), min_size=2, max_size=400), st.integers(0, 3))
+def test_a_windows_mean_and_standard_error_are_numpys(values, decimals):
+    """:func:`_mean_std` gives ``x.mean()`` and ``x.std(ddof=1) / sqrt(n)`` to the bit (the
+    angle's windows are read after every chunk of a tracked push)."""
+    from nanoasm.executor.contact_angle import _mean_std
+
+    for x in (np.array(values), np.round(np.array(values), decimals)):
+        assert _mean_std(x) == (float(x.mean()), float(x.std(ddof=1)) / math.sqrt(x.size))
