@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from .orderstats import grow_square, select
+
 #: Robust sigma from the median absolute deviation of a normal distribution.
 MAD_TO_SIGMA = 1.4826
 #: Lowest automatic cut (nm): a cut closer to the substrate finds noise, not objects.
@@ -50,17 +52,32 @@ def _surface_terms(z: np.ndarray, use: np.ndarray, order: int, max_points: int) 
     """The least-squares polynomial's terms (coefficient, rows' and columns' powers), or
     None where ``use`` holds too few pixels to fit it."""
     ny, nx = z.shape
-    flat = np.flatnonzero(use)                 # the row-major order of np.nonzero, one index array
-    if flat.size < (order + 1) * (order + 2):
+    counts = np.count_nonzero(use, axis=1)
+    total = int(counts.sum())
+    if total < (order + 1) * (order + 2):
         return None
-    if flat.size > max_points:
-        flat = flat[np.linspace(0, flat.size - 1, max_points).astype(int)]
-    iy, ix = np.divmod(flat, nx)
+    if total > max_points:                     # the points np.nonzero's row-major order picks, row by row
+        iy, ix = _picked(use, counts, np.linspace(0, total - 1, max_points).astype(int))
+    else:
+        iy, ix = np.nonzero(use)
     xs, ys = np.linspace(-1.0, 1.0, nx), np.linspace(-1.0, 1.0, ny)
     powers = _powers(order)
     a = np.stack([xs[ix] ** i * ys[iy] ** j for i, j in powers], axis=-1)
     coef, *_ = np.linalg.lstsq(a, z[iy, ix], rcond=None)
     return [(k, ys ** j, xs ** i) for (i, j), k in zip(powers, coef)]
+
+
+def _picked(use: np.ndarray, counts: np.ndarray, pick: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(iy[pick], ix[pick])`` of ``iy, ix = np.nonzero(use)`` (``counts``: ``use``'s per
+    row; ``pick`` ascending), without the index arrays of every pixel."""
+    starts = np.cumsum(counts) - counts        # the rank of each row's first pixel
+    iy = np.searchsorted(starts, pick, side="right") - 1     # an empty row starts where the next does
+    ix = np.empty_like(pick)
+    edges = np.flatnonzero(np.diff(iy)) + 1
+    for a, b in zip(np.concatenate([[0], edges]), np.concatenate([edges, [pick.size]])):
+        r = iy[a]
+        ix[a:b] = np.flatnonzero(use[r])[pick[a:b] - starts[r]]
+    return iy, ix
 
 
 def _band(band: np.ndarray, r: int, terms: list) -> np.ndarray:
@@ -132,39 +149,47 @@ def _row_offsets(z: np.ndarray, use: np.ndarray, min_count: int = 5) -> np.ndarr
     return np.interp(np.arange(z.shape[0]), np.nonzero(good)[0], offs[good])
 
 
-def median(values: np.ndarray, *, overwrite: bool = False) -> float:
-    """``np.median``'s value (flattened), without its third selection (numpy adds the last
-    element to check for NaN; here the upper half's maximum does): a third less time on
-    an image's 16 M heights, and a row's median without numpy's dispatch.
+def median(values: np.ndarray, *, where: np.ndarray | None = None, overwrite: bool = False) -> float:
+    """``np.median``'s value (flattened; ``where``: of the values that mask keeps), without
+    its third selection (numpy adds the last element to check for NaN; here the upper
+    half's maximum does) and, on many values, from the few between sampled bounds
+    (:func:`.orderstats.select`, the same two elements): a row's median without numpy's
+    dispatch, an image's without a copy of it.
     ``overwrite``: reorder ``values`` (a contiguous array the caller gives up) in place
-    instead of a copy of them."""
-    values = np.ravel(values)
-    n = values.size
+    instead of a copy of them when they are partitioned whole."""
+    values = np.asarray(values)
+    n = values.size if where is None else int(np.count_nonzero(where))
     if n < 2:
+        values = np.ravel(values) if where is None else np.ravel(values)[np.ravel(where)]
         return float(values[0]) if n else math.nan
     h = n // 2
-    if overwrite:
-        values.partition([h - 1, h])
-        part = values
-    else:
-        part = np.partition(values, [h - 1, h])
-    if np.isnan(part[h:].max()):               # NaNs sort last
-        return math.nan
-    return float((part[h - 1] + part[h]) / 2) if n % 2 == 0 else float(part[h])
+    part = select(values, (h - 1, h), where)
+    if part is None:
+        if where is not None:
+            values, overwrite = np.ravel(values)[np.ravel(where)], True
+        values = np.ravel(values)
+        if overwrite:
+            values.partition([h - 1, h])
+            part = values
+        else:
+            part = np.partition(values, [h - 1, h])
+        if np.isnan(part[h:].max()):           # NaNs sort last
+            return math.nan
+        part = [part[h - 1], part[h]]
+    return float((part[0] + part[1]) / 2) if n % 2 == 0 else float(part[1])
 
 
-def centre_sigma(values: np.ndarray, *, overwrite: bool = False) -> tuple[float, float]:
-    """The median of ``values`` and their normal-equivalent sigma from the median absolute
-    deviation (``overwrite``: ``values``, contiguous, are the caller's to overwrite)."""
-    if values.size == 0:
+def centre_sigma(values: np.ndarray, *, where: np.ndarray | None = None, overwrite: bool = False,
+                 out: np.ndarray | None = None) -> tuple[float, float]:
+    """The median of ``values`` (``where``: of those that mask keeps) and their
+    normal-equivalent sigma from the median absolute deviation (``overwrite``:
+    ``values``, contiguous, are the caller's to overwrite; else the deviations go to
+    ``out``, an array of their shape and type, or a new one)."""
+    if (values.size if where is None else np.count_nonzero(where)) == 0:
         return math.nan, 0.0
-    centre = median(values, overwrite=overwrite)
-    if overwrite:
-        dev = np.ravel(values)
-        dev -= centre
-    else:
-        dev = values - centre
-    return centre, float(MAD_TO_SIGMA * median(np.abs(dev, out=dev), overwrite=True))
+    centre = median(values, where=where, overwrite=overwrite)
+    dev = np.subtract(values, centre, out=values if overwrite else out)
+    return centre, float(MAD_TO_SIGMA * median(np.abs(dev, out=dev), where=where, overwrite=True))
 
 
 def robust_sigma(values: np.ndarray) -> float:
@@ -172,21 +197,36 @@ def robust_sigma(values: np.ndarray) -> float:
     return centre_sigma(values)[1]
 
 
-def _tilt(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """The sample's tilt as a plane through 0: the median slope between neighbours.
+def _tilt(z: np.ndarray, valid: np.ndarray | None, out: np.ndarray) -> tuple[float, float, float]:
+    """The sample's tilt, the median slopes along the rows and along the columns between
+    valid neighbours (``valid`` None: all are), and the noise sigma of a height from the
+    differences along the rows (0 with no pair); ``out`` (as many elements as ``z``)
+    holds the differences.
 
     Flat substrate and flat plateaus share the tilt, objects' flanks cancel and steps
     are rare, so the medians hold however much of the image the plateaus cover.
     """
     ny, nx = z.shape
-    dx = np.diff(z, axis=1)[valid[:, 1:] & valid[:, :-1]]
-    dy = np.diff(z, axis=0)[valid[1:] & valid[:-1]]
-    sx = median(dx) if dx.size else 0.0
-    sy = median(dy) if dy.size else 0.0
-    return sx * np.arange(nx)[None, :] + sy * np.arange(ny)[:, None]
+    pairs = None if valid is None else valid[:, 1:] & valid[:, :-1]
+    dx = np.subtract(z[:, 1:], z[:, :-1], out=out[:ny * (nx - 1)].reshape(ny, nx - 1))    # np.diff's
+    sx, noise = 0.0, 0.0
+    if (dx.size if pairs is None else np.count_nonzero(pairs)):
+        sx, sigma = centre_sigma(dx, where=pairs, overwrite=True)
+        noise = sigma / np.sqrt(2)
+    pairs = None if valid is None else valid[1:] & valid[:-1]
+    dy = np.subtract(z[1:], z[:-1], out=out[:(ny - 1) * nx].reshape(ny - 1, nx))
+    sy = median(dy, where=pairs) if (dy.size if pairs is None else np.count_nonzero(pairs)) else 0.0
+    return sx, sy, noise
 
 
-def initial_substrate(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
+def _untilted(z: np.ndarray, sx: float, sy: float, out: np.ndarray) -> np.ndarray:
+    """``z`` less the plane of slopes ``sx``, ``sy`` through 0, in ``out`` (of ``z``'s shape)."""
+    ny, nx = z.shape
+    np.add(sx * np.arange(nx)[None, :], sy * np.arange(ny)[:, None], out=out)
+    return np.subtract(z, out, out=out)
+
+
+def initial_substrate(z: np.ndarray, valid: np.ndarray, *, out: np.ndarray | None = None) -> np.ndarray:
     """Pixels to start levelling from: all valid ones, unless plateaus hold a large part.
 
     The heights, less the tilt (:func:`_tilt`), are binned at the noise
@@ -195,15 +235,17 @@ def initial_substrate(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
     substrate, so when there are several the lowest is it, and the start excludes
     everything closer to the next level up, provided most rows show that level (else
     the levels are bands of offset lines). Row medians alone would otherwise take a
-    plateau covering most of a row for the substrate.
+    plateau covering most of a row for the substrate. ``out``: a scratch array of
+    ``z``'s size and type (else a new one).
     """
-    diffs = np.diff(z, axis=1)[valid[:, 1:] & valid[:, :-1]]
-    noise = robust_sigma(diffs) / np.sqrt(2) if diffs.size else 0.0
-    flat = z - _tilt(z, valid)
-    vals = flat[valid]
+    out = np.empty(z.size, z.dtype) if out is None else out
+    every = bool(valid.all())
+    sx, sy, noise = _tilt(z, None if every else valid, out)
+    flat = _untilted(z, sx, sy, out.reshape(z.shape))
+    vals = flat.ravel() if every else flat.ravel()[valid.ravel()]
     if noise <= 0 or vals.size < 100:
         return valid
-    lo, hi = np.percentile(vals, [0.1, 99.9])
+    lo, hi = np.percentile(vals, [0.1, 99.9], overwrite_input=True)     # reorders vals: flat is made again
     step = max(noise, (hi - lo) / 4000)
     if hi - lo < 10 * noise:
         return valid
@@ -229,7 +271,8 @@ def initial_substrate(z: np.ndarray, valid: np.ndarray) -> np.ndarray:
     if len(merged) < 2:
         return valid
     (h0, _), (h1, _) = merged[0], merged[1]
-    start = valid & (np.abs(flat - h0) <= (h1 - h0) / 2)
+    flat = np.subtract(_untilted(z, sx, sy, flat), h0, out=flat)
+    start = valid & (np.abs(flat, out=flat) <= (h1 - h0) / 2)
     # Levels that each fill whole rows are line offsets (bands), not plateaus on a
     # substrate: the row alignment handles those, starting from every pixel.
     if np.mean(np.count_nonzero(start, axis=1) >= 5) < ROWS_WITH_SUBSTRATE:
@@ -265,8 +308,10 @@ def level(height: np.ndarray, *, plane_order: int = 1, line_order: int = 0,
     valid = np.isfinite(z)
     if not valid.any():
         raise ValueError("height has no finite value")
-    z = np.where(valid, z, median(z[valid]))
-    use = initial_substrate(z, valid)
+    every = bool(valid.all())
+    z = z.copy() if every else np.where(valid, z, median(z, where=valid))
+    scratch = np.empty(z.shape)               # one image-sized buffer for every step's temporaries
+    use = initial_substrate(z, valid, out=scratch.ravel())
     sigma = 0.0
     for _ in range(iterations):               # z is this function's own: changed in place
         _subtract_surface(z, use, plane_order)
@@ -276,12 +321,12 @@ def level(height: np.ndarray, *, plane_order: int = 1, line_order: int = 0,
                 z -= rows[:, None]
         else:
             z -= align_rows(z, use, line_order)
-        centre, sigma = centre_sigma(z[use], overwrite=True)
+        centre, sigma = centre_sigma(z, where=use, out=scratch)
         z -= centre
         limit = max(k_mask * sigma, floor / 2)
-        objects = np.abs(z) > limit
+        objects = np.abs(z, out=scratch) > limit
         if grow:                              # = binary_dilation(objects, 3 x 3, iterations=grow)
-            objects = ndimage.maximum_filter(objects, size=2 * grow + 1)
+            objects = grow_square(objects, grow)
         new_use = valid & ~objects
         if np.count_nonzero(new_use) < max(10, 0.05 * z.size):
             break                             # too little substrate left: keep the last mask
@@ -289,7 +334,8 @@ def level(height: np.ndarray, *, plane_order: int = 1, line_order: int = 0,
             use = new_use
             break                             # converged
         use = new_use
-    z = np.where(valid, z, 0.0)
+    if not every:
+        z[~valid] = 0.0
     return Levelled(z, use, sigma, valid)
 
 
@@ -299,12 +345,14 @@ def default_cut(lev: Levelled, k: float = 5.0, floor: float = CUT_FLOOR) -> floa
     The mode is the peak of the height histogram of the substrate pixels (bins of a
     fifth of sigma, lightly smoothed).
     """
-    base = lev.height[lev.substrate]
     sigma = lev.sigma
     mode = 0.0
-    if base.size > 100 and sigma > 0:
+    if np.count_nonzero(lev.substrate) > 100 and sigma > 0:
         bins = np.arange(-5 * sigma, 5 * sigma + sigma / 5, sigma / 5)
-        hist, edges = np.histogram(base, bins=bins)
+        hist, edges = 0, bins                 # the substrate's histogram summed band by band: no copy of it
+        for r in range(0, lev.height.shape[0], _BAND):
+            part, edges = np.histogram(lev.height[r:r + _BAND][lev.substrate[r:r + _BAND]], bins=bins)
+            hist = hist + part
         hist = ndimage.uniform_filter1d(hist.astype(float), 3)
         i = int(np.argmax(hist))
         mode = 0.5 * (edges[i] + edges[i + 1])

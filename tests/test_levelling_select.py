@@ -1,0 +1,170 @@
+"""The exact shortcuts of levelling a large image: order statistics between sampled bounds,
+mask growth by shifted ORs, the surface fit's points picked row by row. Each must give,
+to the bit, what the plain numpy or scipy call gives."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
+
+from nanoasm.world.identify import orderstats
+from nanoasm.world.identify.levelling import centre_sigma, median
+
+
+@pytest.fixture(params=[(8, 4.0), (8, 0.0), (64, 0.5)])
+def small_select(request, monkeypatch):
+    """Selection between sampled bounds on a few values, from a sample of a few values
+    with wide or no margins (bounds that often miss the ranks)."""
+    monkeypatch.setattr(orderstats, "SELECT_MIN", 2)
+    monkeypatch.setattr(orderstats, "_SAMPLE", request.param[0])
+    monkeypatch.setattr(orderstats, "_MARGIN", request.param[1])
+
+
+def _same(got: float, want: float) -> bool:
+    """Equal bits (NaN equal to NaN, 0.0 not -0.0)."""
+    return np.float64(got).tobytes() == np.float64(want).tobytes() or (math.isnan(got) and math.isnan(want))
+
+
+def _partitioned_median(values: np.ndarray) -> float:
+    """The median as a partition at the two middle ranks gives it, NaN if any (which of
+    two zeros it is may differ from ``np.median``'s, a partition at the upper rank only)."""
+    n = values.size
+    if n < 2:
+        return float(values[0]) if n else math.nan
+    h = n // 2
+    part = np.partition(values, [h - 1, h])
+    if np.isnan(part).any():
+        return math.nan
+    return float((part[h - 1] + part[h]) / 2) if n % 2 == 0 else float(part[h])
+
+
+_values = st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True, width=64),
+                             st.sampled_from([0.0, -0.0, 1.0, -1.0, 2.5])), min_size=0, max_size=400)
+
+
+@settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(_values, st.sampled_from([np.float64, np.float32]), st.integers(0, 2 ** 32 - 1))
+def test_select_and_median_are_numpys_on_any_values(small_select, values, dtype, seed):
+    """With ties, both zeros, NaN and infinities, in float64 and float32, all values or a
+    mask's: the partition's elements at the ranks whenever :func:`select` answers, and
+    ``np.median``'s value from :func:`median` (and the partition's sign of zero)."""
+    with np.errstate(all="ignore"):
+        a = np.array(values, dtype=np.float64).astype(dtype)
+    keep = np.random.default_rng(seed).random(a.size) < 0.7
+    for where, kept in ((None, a), (keep, a[keep])):
+        if kept.size >= 2:
+            h = kept.size // 2
+            got = orderstats.select(a, (h - 1, h), where)
+            part = np.partition(kept, [h - 1, h])
+            if got is not None:
+                assert all(g.dtype == dtype for g in got)
+                assert np.array(got).tobytes() == part[[h - 1, h]].tobytes()
+        with np.errstate(all="ignore"):                # inf + -inf
+            want = np.median(kept) if kept.size else math.nan
+            got, plain = median(a, where=where), _partitioned_median(kept)
+        assert (math.isnan(got) and math.isnan(want)) or got == want
+        assert _same(got, plain)
+
+
+@pytest.mark.parametrize("n", [450_000, 450_001, 1_000_001, 3_000_000])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_select_answers_on_large_arrays_with_the_partitions_elements(n, dtype):
+    """At the default sample size the bounds hold on large arrays (ties, a sorted run, a
+    mask): the selection answers, with ``np.partition``'s elements; NaN makes it decline."""
+    rng = np.random.default_rng(n)
+    a = np.round(rng.normal(0.3, 1.0, n), 2).astype(dtype)     # no zero in the middle
+    a[: n // 3] = np.sort(a[: n // 3])
+    keep = rng.random(n) < 0.6
+    for where, kept in ((None, a), (keep, a[keep])):
+        h = kept.size // 2
+        for ranks in ((h - 1, h), (h,), (kept.size // 1000, kept.size - 1 - kept.size // 1000)):
+            got = orderstats.select(a, ranks, where)
+            assert got is not None
+            assert np.array(got).tobytes() == np.partition(kept, list(ranks))[list(ranks)].tobytes()
+        centre = np.median(kept)
+        assert median(a, where=where) == centre
+        assert centre_sigma(a, where=where) == (centre, 1.4826 * float(np.median(np.abs(kept - centre))))
+    a[rng.integers(n)] = np.nan
+    assert orderstats.select(a, (n // 2,)) is None
+    assert math.isnan(median(a))
+
+
+def test_select_answers_or_declines_by_its_bounds(small_select):
+    """Bounds that hold give the partition's elements; bounds that miss give no answer."""
+    rng = np.random.default_rng(3)
+    answered = 0
+    for n in range(2, 3000, 7):
+        a = rng.normal(0.0, 1.0, n)
+        a[: n // 2] = np.sort(a[: n // 2])[::-1]
+        h = n // 2
+        got = orderstats.select(a, (h - 1, h))
+        if got is not None:
+            answered += 1
+            assert np.array(got).tobytes() == np.partition(a, [h - 1, h])[[h - 1, h]].tobytes()
+        assert median(a) == np.median(a)
+    assert answered > 50
+
+
+def test_select_declines_between_zeros_of_both_signs():
+    """Which of 0.0 and -0.0 a partition puts at a rank is its own choice: no answer."""
+    a = np.concatenate([np.full(200_000, -1.0), np.zeros(100_000), -np.zeros(100_000), np.ones(200_000)])
+    np.random.default_rng(0).shuffle(a)
+    assert orderstats.select(a, (299_999, 300_000)) is None
+    assert orderstats.select(np.abs(a), (299_999, 300_000)) is not None
+    assert _same(median(a), _partitioned_median(a)) and median(a) == np.median(a)
+
+
+@settings(max_examples=100, deadline=None)
+@given(st.integers(1, 40), st.integers(1, 40), st.integers(0, 5), st.floats(0.0, 1.0), st.integers(0, 2 ** 32 - 1))
+def test_grow_square_is_the_maximum_filter(ny, nx, g, density, seed):
+    """Shifted ORs along each axis: the maximum filter's booleans, edges and thin images included."""
+    mask = np.random.default_rng(seed).random((ny, nx)) < density
+    got = orderstats.grow_square(mask, g)
+    assert got.dtype == bool and got is not mask
+    np.testing.assert_array_equal(got, ndimage.maximum_filter(mask, size=2 * g + 1))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_surface_points_picked_row_by_row_are_nonzeros(seed):
+    """The picked points of the surface fit, found row by row (empty rows included), are
+    those the index arrays of every pixel give."""
+    from nanoasm.world.identify.levelling import _picked
+
+    rng = np.random.default_rng(seed)
+    use = rng.random((60 + seed, 50)) < 0.5
+    use[rng.integers(0, use.shape[0], 8)] = False
+    use[-1] = seed % 2 == 0
+    iy, ix = np.nonzero(use)
+    pick = np.linspace(0, iy.size - 1, 300 + 100 * seed).astype(int)
+    got = _picked(use, np.count_nonzero(use, axis=1), pick)
+    np.testing.assert_array_equal(got[0], iy[pick])
+    np.testing.assert_array_equal(got[1], ix[pick])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_level_with_selection_on_small_images_is_the_plain_computation(small_select, seed):
+    """``level`` with every median selected between sampled bounds: the whole-image steps' result."""
+    from test_identify import _plain_level
+
+    from nanoasm.world.identify.levelling import level
+
+    rng = np.random.default_rng(seed)
+    ny, nx = 130 + 17 * seed, 110
+    yy, xx = np.mgrid[0:ny, 0:nx]
+    z = 0.01 * xx + 0.02 * yy + rng.normal(0, 0.3, (ny, nx)) + rng.normal(0, 2, ny)[:, None]
+    for _ in range(20):
+        cy, cx = rng.integers(0, ny), rng.integers(0, nx)
+        z += 8 * np.exp(-((yy - cy) ** 2 + (xx - cx) ** 2) / 50.0)
+    if seed == 1:
+        z[rng.random((ny, nx)) < 0.01] = np.nan
+    for kw in ({}, {"line_order": 1}, {"grow": 3}):
+        got = level(z, **kw)
+        height, use, sigma = _plain_level(z, **kw)
+        np.testing.assert_array_equal(got.height, height)
+        np.testing.assert_array_equal(got.substrate, use)
+        assert got.sigma == sigma
