@@ -52,7 +52,9 @@ def label_grains(height: np.ndarray, cut: float, min_pixels: int = 1,
         keep[1:] &= _tops(height, labels, n) >= min_height
     remap = np.zeros(n + 1, dtype=labels.dtype)
     remap[keep] = np.arange(1, np.count_nonzero(keep) + 1)
-    return remap[labels], int(np.count_nonzero(keep))
+    for r in range(0, labels.shape[0], 256):  # remap[labels] in place, a band at a time: no second label image
+        labels[r:r + 256] = remap[labels[r:r + 256]]
+    return labels, int(np.count_nonzero(keep))
 
 
 def _tops(height: np.ndarray, labels: np.ndarray, n: int) -> np.ndarray:
