@@ -168,3 +168,59 @@ def test_level_with_selection_on_small_images_is_the_plain_computation(small_sel
         np.testing.assert_array_equal(got.height, height)
         np.testing.assert_array_equal(got.substrate, use)
         assert got.sigma == sigma
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 12), st.integers(1, 60), st.sampled_from([np.float64, np.float32]),
+       st.sampled_from(["normal", "ties", "zeros", "special"]), st.integers(1, 4), st.floats(0.0, 3.0),
+       st.integers(0, 2 ** 32 - 1))
+def test_row_middles_are_each_rows_partition(ny, nx, dtype, kind, step, margin, seed):
+    """Every row's two middle elements among its kept values, as a partition of that row
+    alone puts them, wherever :func:`row_middles` answers (ties, both zeros, NaN, infinities,
+    rows with fewer than two values; samples of every ``step``-th value, tight bounds)."""
+    rng = np.random.default_rng(seed)
+    z = {"normal": lambda: rng.normal(0.0, 1.0, (ny, nx)) + rng.normal(0.0, 3.0, (ny, 1)),
+         "ties": lambda: rng.integers(-2, 3, (ny, nx)).astype(float),
+         "zeros": lambda: rng.choice([0.0, -0.0, 1.0, -1.0], (ny, nx)),
+         "special": lambda: rng.choice([np.nan, np.inf, -np.inf, 0.5, -0.5, 1.5], (ny, nx))}[kind]().astype(dtype)
+    use = rng.random((ny, nx)) < rng.uniform(0.2, 1.0)
+    counts = np.count_nonzero(use, axis=1)
+    old = orderstats._ROW_STEP, orderstats._ROW_MARGIN
+    orderstats._ROW_STEP, orderstats._ROW_MARGIN = step, margin
+    try:
+        a, b, ok = orderstats.row_middles(z, use, counts)
+    finally:
+        orderstats._ROW_STEP, orderstats._ROW_MARGIN = old
+    assert ok.shape == (ny,) and not ok[counts < 2].any()
+    for i in np.flatnonzero(ok):
+        h = counts[i] // 2
+        part = np.partition(z[i, use[i]], [h - 1, h])
+        assert a[i].tobytes() == part[h - 1].tobytes() and b[i].tobytes() == part[h].tobytes()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_row_offsets_on_a_large_image_are_each_rows_median(seed):
+    """The rows' offsets of a large image, most rows partitioned at once: the medians of
+    each row's kept values one by one, interpolated over rows with too few (NaN in a row,
+    a row of integers, a row of zeros of both signs)."""
+    from nanoasm.world.identify.levelling import _row_offsets
+
+    rng = np.random.default_rng(seed)
+    ny, nx = 300, 900 + seed
+    z = rng.normal(0.0, 1.0, (ny, nx)) + rng.normal(0.0, 3.0, (ny, 1))
+    use = rng.random((ny, nx)) < 0.8
+    use[5] = False
+    use[7, 4:] = False
+    z[9, 4] = np.nan
+    z[11] = np.round(z[11])
+    z[13] = rng.choice([0.0, -0.0], nx)
+    z[13, ::3] = rng.normal(0.0, 1.0, z[13, ::3].size)
+    assert z.size >= orderstats.SELECT_MIN
+    counts = np.count_nonzero(use, axis=1)
+    assert np.count_nonzero(orderstats.row_middles(z, use, counts)[2]) > ny // 2
+    offs = np.full(ny, np.nan)
+    for i in np.flatnonzero(counts >= 5):
+        offs[i] = _partitioned_median(z[i, use[i]])
+    good = np.isfinite(offs)
+    want = np.interp(np.arange(ny), np.flatnonzero(good), offs[good])
+    assert _row_offsets(z, use).tobytes() == want.tobytes()

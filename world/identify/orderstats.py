@@ -18,6 +18,11 @@ SELECT_MIN = 1 << 18
 _SAMPLE = 1 << 16
 #: The bounds lie this many square roots of the sample's size beyond the wanted ranks.
 _MARGIN = 4.0
+#: A row's bounds come from every this many-th of its values, ...
+_ROW_STEP = 8
+#: ... this many square roots of their number beyond the wanted ranks (a row whose
+#: bounds miss, one in twenty, takes its own partition).
+_ROW_MARGIN = 1.0
 
 
 def select(values: np.ndarray, ranks: tuple[int, ...], where: np.ndarray | None = None) -> list | None:
@@ -83,3 +88,51 @@ def grow_square(mask: np.ndarray, g: int) -> np.ndarray:
         out[s:] |= rows[:-s]
         out[:-s] |= rows[s:]
     return out
+
+
+def row_middles(z: np.ndarray, use: np.ndarray, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row ``i`` of the 2-D ``z``, the elements at ranks ``counts[i] // 2 - 1`` and
+    ``counts[i] // 2`` among ``z[i, use[i]]`` (``counts``: ``use``'s per row), those
+    ``np.partition`` puts there, and which rows have them: not those with fewer than 2
+    values, with bounds that miss, with NaN or with a selected zero (:func:`select`).
+
+    The bounds come from every ``_ROW_STEP``-th column of the row; the values between
+    them, shifted so that every row's wanted ranks fall in the same two columns (padded
+    with infinities), are partitioned at once.
+    """
+    ny, nx = z.shape
+    h, rows = counts // 2, np.arange(ny)
+    picked = use[:, ::_ROW_STEP]
+    sample = np.where(picked, z[:, ::_ROW_STEP], np.inf)
+    sample.sort(axis=1)
+    m = np.count_nonzero(picked, axis=1)
+    margin = (_ROW_MARGIN * np.sqrt(m)).astype(np.intp) + 1
+    last, total = np.maximum(m - 1, 0), np.maximum(counts, 1)
+    lo = sample[rows, np.clip((h - 1) * m // total - margin, 0, last)][:, None]
+    hi = sample[rows, np.clip(h * m // total + margin, 0, last)][:, None]
+    below, inside = z < lo, z <= hi
+    below &= use
+    inside &= use
+    inside ^= below
+    n_below, n_inside = np.count_nonzero(below, axis=1), np.count_nonzero(inside, axis=1)
+    want = h - 1 - n_below                      # the lower rank among the row's values between
+    ok = (counts >= 2) & (m >= 2) & (want >= 0) & (want + 1 < n_inside)
+    if np.isnan(z).any():                       # NaN is neither below, between nor above
+        above = z > hi
+        above &= use
+        ok &= n_below + n_inside + np.count_nonzero(above, axis=1) == counts
+    inside &= ok[:, None]
+    n_inside, want = np.where(ok, n_inside, 0), np.where(ok, want, 0)
+    if not ok.any():
+        return np.zeros(ny, z.dtype), np.zeros(ny, z.dtype), ok
+    k = int(want.max())
+    shift = k - want                            # -inf in front of row i: its ranks move to k, k + 1
+    width = int((shift + n_inside).max())
+    at = np.repeat(rows * width + shift - (np.cumsum(n_inside) - n_inside), n_inside) + np.arange(n_inside.sum())
+    part = np.full((ny, width), np.inf, z.dtype)
+    part[np.arange(width)[None, :] < shift[:, None]] = -np.inf
+    part.ravel()[at] = z[inside]
+    part.partition([k, k + 1], axis=1)
+    a, b = part[:, k], part[:, k + 1]
+    ok &= (a != 0) & (b != 0)                   # a zero: which one is the partition's choice
+    return a, b, ok
