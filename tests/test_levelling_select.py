@@ -224,3 +224,4 @@ def test_row_offsets_on_a_large_image_are_each_rows_median(seed):
     good = np.isfinite(offs)
     want = np.interp(np.arange(ny), np.flatnonzero(good), offs[good])
     assert _row_offsets(z, use).tobytes() == want.tobytes()
+

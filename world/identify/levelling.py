@@ -49,8 +49,8 @@ def _powers(order: int) -> list[tuple[int, int]]:
 
 
 def _surface_terms(z: np.ndarray, use: np.ndarray, order: int, max_points: int) -> list | None:
-    """The least-squares polynomial's terms (coefficient, rows' and columns' powers), or
-    None where ``use`` holds too few pixels to fit it."""
+    """The least-squares polynomial's terms (coefficient, rows' and columns' powers, None
+    for a power 0: ones), or None where ``use`` holds too few pixels to fit it."""
     ny, nx = z.shape
     counts = np.count_nonzero(use, axis=1)
     total = int(counts.sum())
@@ -64,7 +64,7 @@ def _surface_terms(z: np.ndarray, use: np.ndarray, order: int, max_points: int) 
     powers = _powers(order)
     a = np.stack([xs[ix] ** i * ys[iy] ** j for i, j in powers], axis=-1)
     coef, *_ = np.linalg.lstsq(a, z[iy, ix], rcond=None)
-    return [(k, ys ** j, xs ** i) for (i, j), k in zip(powers, coef)]
+    return [(k, ys ** j if j else None, xs ** i if i else None) for (i, j), k in zip(powers, coef)]
 
 
 def _picked(use: np.ndarray, counts: np.ndarray, pick: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -81,10 +81,16 @@ def _picked(use: np.ndarray, counts: np.ndarray, pick: np.ndarray) -> tuple[np.n
 
 
 def _band(band: np.ndarray, r: int, terms: list) -> np.ndarray:
-    """The surface's rows ``r`` on into ``band`` (zeroed first)."""
+    """The surface's rows ``r`` on into ``band`` (zeroed first): each term ``k * np.outer(yj,
+    xi)`` added in turn, a factor of ones broadcast instead (1.0 * v is v: the same sums)."""
     band[...] = 0.0
     for k, yj, xi in terms:
-        band += k * np.outer(yj[r:r + band.shape[0]], xi)
+        if yj is None:
+            band += k if xi is None else k * xi
+        elif xi is None:
+            band += (k * yj[r:r + band.shape[0]])[:, None]
+        else:
+            band += k * np.outer(yj[r:r + band.shape[0]], xi)
     return band
 
 
