@@ -193,16 +193,15 @@ def median(values: np.ndarray, *, where: np.ndarray | None = None, overwrite: bo
     return float((part[0] + part[1]) / 2) if n % 2 == 0 else float(part[1])
 
 
-def centre_sigma(values: np.ndarray, *, where: np.ndarray | None = None, overwrite: bool = False,
-                 out: np.ndarray | None = None) -> tuple[float, float]:
+def centre_sigma(values: np.ndarray, *, where: np.ndarray | None = None,
+                 overwrite: bool = False) -> tuple[float, float]:
     """The median of ``values`` (``where``: of those that mask keeps) and their
     normal-equivalent sigma from the median absolute deviation (``overwrite``:
-    ``values``, contiguous, are the caller's to overwrite; else the deviations go to
-    ``out``, an array of their shape and type, or a new one)."""
+    ``values``, contiguous, are the caller's to overwrite)."""
     if (values.size if where is None else np.count_nonzero(where)) == 0:
         return math.nan, 0.0
     centre = median(values, where=where, overwrite=overwrite)
-    dev = np.subtract(values, centre, out=values if overwrite else out)
+    dev = np.subtract(values, centre, out=values if overwrite else None)
     return centre, float(MAD_TO_SIGMA * median(np.abs(dev, out=dev), where=where, overwrite=True))
 
 
@@ -335,10 +334,12 @@ def level(height: np.ndarray, *, plane_order: int = 1, line_order: int = 0,
                 z -= rows[:, None]
         else:
             z -= align_rows(z, use, line_order)
-        centre, sigma = centre_sigma(z, where=use, out=scratch)
+        centre = median(z, where=use)         # centre_sigma's: use is never empty here
         z -= centre
+        dev = np.abs(z, out=scratch)          # its deviations, the heights' distance from 0
+        sigma = float(MAD_TO_SIGMA * median(dev, where=use))
         limit = max(k_mask * sigma, floor / 2)
-        objects = np.abs(z, out=scratch) > limit
+        objects = dev > limit
         if grow:                              # = binary_dilation(objects, 3 x 3, iterations=grow)
             objects = grow_square(objects, grow)
         new_use = valid & ~objects
