@@ -322,7 +322,7 @@ def level(height: np.ndarray, *, plane_order: int = 1, line_order: int = 0,
     if not valid.any():
         raise ValueError("height has no finite value")
     every = bool(valid.all())
-    z = z.copy() if every else np.where(valid, z, median(z, where=valid))
+    z = z.copy(order="K") if every else np.where(valid, z, median(z, where=valid))     # np.where's layout
     scratch = np.empty(z.shape)               # one image-sized buffer for every step's temporaries
     use = initial_substrate(z, valid, out=scratch.ravel())
     sigma = 0.0
