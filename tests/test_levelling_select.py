@@ -225,3 +225,39 @@ def test_row_offsets_on_a_large_image_are_each_rows_median(seed):
     want = np.interp(np.arange(ny), np.flatnonzero(good), offs[good])
     assert _row_offsets(z, use).tobytes() == want.tobytes()
 
+
+
+@pytest.mark.parametrize("holes", [False, True])
+def test_tilt_is_the_medians_of_the_valid_differences(small_select, holes):
+    """The slopes and the noise from differences written into a scratch array and masked
+    there: the medians of the differences between valid neighbours, gathered."""
+    from nanoasm.world.identify.levelling import _tilt
+
+    rng = np.random.default_rng(7)
+    ny, nx = 90, 70
+    z = 0.03 * np.arange(nx)[None, :] - 0.02 * np.arange(ny)[:, None] + rng.normal(0.0, 0.2, (ny, nx))
+    valid = rng.random((ny, nx)) > (0.05 if holes else 0.0)
+    z = np.where(valid, z, np.nan) if holes else z
+    dx = np.diff(z, axis=1)[valid[:, 1:] & valid[:, :-1]]
+    dy = np.diff(z, axis=0)[valid[1:] & valid[:-1]]
+    with np.errstate(invalid="ignore"):
+        got = _tilt(z, valid if holes else None, np.empty(z.size))
+    assert got == (np.median(dx), np.median(dy), 1.4826 * float(np.median(np.abs(dx - np.median(dx)))) / np.sqrt(2))
+
+
+def test_initial_substrate_on_plateaus_is_the_same_by_selection_or_partition(monkeypatch):
+    """An image two thirds covered by a plateau starts from the lower level; the mask is
+    the same whether its medians are selected between bounds or partitioned whole, and
+    whether the scratch array is the caller's or its own."""
+    from nanoasm.world.identify.levelling import initial_substrate
+
+    rng = np.random.default_rng(8)
+    ny, nx = 300, 1000
+    z = 0.001 * np.arange(nx)[None, :] + rng.normal(0.0, 0.05, (ny, nx))
+    z[:, 300:] += 20.0
+    valid = np.isfinite(z)
+    assert z.size >= orderstats.SELECT_MIN
+    selected = initial_substrate(z, valid, out=np.empty(z.size))
+    assert 0.25 < selected.mean() < 0.35
+    monkeypatch.setattr(orderstats, "SELECT_MIN", z.size + 1)
+    np.testing.assert_array_equal(initial_substrate(z, valid), selected)
