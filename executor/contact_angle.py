@@ -297,10 +297,8 @@ class _Contact:
 
     def onset(self, sn, sl, along, lever: Cantilever, within: float) -> float:
         """:func:`_onset` of the samples so far (:meth:`view`), kept while what it reads stays
-        the same: the samples only grow (keyed), so the same reach reads the same values."""
+        the same: the samples only grow, so the same reach reads the same values."""
         reach = _onset_reach(along, within)
-        if self.key is None:
-            return _onset_over(sn, sl, along, lever, within, *reach)
         if self._onset is None or self._onset[0] != (reach, within, lever):
             self._onset = ((reach, within, lever), _onset_over(sn, sl, along, lever, within, *reach))
         return self._onset[1]

@@ -261,3 +261,20 @@ def test_initial_substrate_on_plateaus_is_the_same_by_selection_or_partition(mon
     assert 0.25 < selected.mean() < 0.35
     monkeypatch.setattr(orderstats, "SELECT_MIN", z.size + 1)
     np.testing.assert_array_equal(initial_substrate(z, valid), selected)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.integers(2, 3000), st.floats(0.1, 0.9), st.integers(0, 2 ** 32 - 1))
+def test_centre_sigma_leaves_the_deviations_in_out(small_select, n, share, seed):
+    """``out`` holds every value's absolute deviation from the median (what the levelling's
+    mask reads), the values stay as they were, and the figures are those without ``out``."""
+    rng = np.random.default_rng(seed)
+    values = np.round(rng.normal(0.0, 3.0, (3, n)), 1)
+    where = rng.random(values.shape) < share
+    where.flat[0] = True
+    for keep in (where, None):
+        before, out = values.copy(), np.empty_like(values)
+        got = centre_sigma(values, where=keep, out=out)
+        assert got == centre_sigma(values.copy(), where=keep)
+        assert values.tobytes() == before.tobytes()
+        assert out.tobytes() == np.abs(values - got[0]).tobytes()

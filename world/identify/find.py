@@ -33,7 +33,7 @@ from nanoasm.world.limits import MAX_HEIGHT, MAX_PIXEL_SIZE, MAX_TIP_RADIUS, MIN
 from nanoasm.world.tipimage import Tip
 
 from .grains import EIGHT, label_grains, mask_polygon, touches_border
-from .levelling import Levelled, default_cut, level
+from .levelling import COPY_BAND, Levelled, default_cut, level
 from .pieces import Context, Piece, tolerance
 from .resolve import Grain, measure_grain, resolve_grain
 
@@ -176,7 +176,7 @@ def analyse(image: HeightImage, *, cut: float | None = None, min_area: float | N
     return Analysis(env, lev, cut, labels, tuple(resolved), tol)
 
 
-def _top(height: np.ndarray, finite: np.ndarray, band: int = 256) -> float:
+def _top(height: np.ndarray, finite: np.ndarray, band: int = COPY_BAND) -> float:
     """``float(np.max(np.abs(height[finite])))`` (some pixel is finite), a band of rows at a
     time: no image-sized copies (each costs a 4000 x 4000 pixel scan a third of a second)."""
     return max(float(np.max(np.abs(height[r:r + band][finite[r:r + band]]), initial=0.0))

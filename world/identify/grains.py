@@ -16,6 +16,8 @@ from skimage.measure import find_contours
 from skimage.morphology import h_maxima
 from skimage.segmentation import watershed
 
+from .levelling import COPY_BAND
+
 EIGHT = ndimage.generate_binary_structure(2, 2)
 #: Adjacent pieces whose saddle reaches this fraction of the lower peak are one piece.
 FUSE = 0.6
@@ -52,8 +54,8 @@ def label_grains(height: np.ndarray, cut: float, min_pixels: int = 1,
         keep[1:] &= _tops(height, labels, n) >= min_height
     remap = np.zeros(n + 1, dtype=labels.dtype)
     remap[keep] = np.arange(1, np.count_nonzero(keep) + 1)
-    for r in range(0, labels.shape[0], 256):  # remap[labels] in place, a band at a time: no second label image
-        labels[r:r + 256] = remap[labels[r:r + 256]]
+    for r in range(0, labels.shape[0], COPY_BAND):    # remap[labels] in place, a band at a time: no second image
+        labels[r:r + COPY_BAND] = remap[labels[r:r + COPY_BAND]]
     return labels, int(np.count_nonzero(keep))
 
 

@@ -30,6 +30,8 @@ DENSE_LEVEL = 0.05
 ROWS_WITH_SUBSTRATE = 0.8
 #: Rows of a fitted surface evaluated at once (a band of a 4000-pixel image is 2 MB).
 _BAND = 64
+#: Rows of a band in passes made band by band only to spare an image-sized copy.
+COPY_BAND = 256
 
 
 @dataclass(frozen=True, eq=False)
@@ -193,16 +195,17 @@ def median(values: np.ndarray, *, where: np.ndarray | None = None, overwrite: bo
     return float((part[0] + part[1]) / 2) if n % 2 == 0 else float(part[1])
 
 
-def centre_sigma(values: np.ndarray, *, where: np.ndarray | None = None,
-                 overwrite: bool = False) -> tuple[float, float]:
+def centre_sigma(values: np.ndarray, *, where: np.ndarray | None = None, overwrite: bool = False,
+                 out: np.ndarray | None = None) -> tuple[float, float]:
     """The median of ``values`` (``where``: of those that mask keeps) and their
     normal-equivalent sigma from the median absolute deviation (``overwrite``:
-    ``values``, contiguous, are the caller's to overwrite)."""
+    ``values``, contiguous, are the caller's to overwrite; ``out``: an array of their
+    shape left holding every value's absolute deviation from the median)."""
     if (values.size if where is None else np.count_nonzero(where)) == 0:
         return math.nan, 0.0
     centre = median(values, where=where, overwrite=overwrite)
-    dev = np.subtract(values, centre, out=values if overwrite else None)
-    return centre, float(MAD_TO_SIGMA * median(np.abs(dev, out=dev), where=where, overwrite=True))
+    dev = np.subtract(values, centre, out=out if out is not None else values if overwrite else None)
+    return centre, float(MAD_TO_SIGMA * median(np.abs(dev, out=dev), where=where, overwrite=out is None))
 
 
 def robust_sigma(values: np.ndarray) -> float:
@@ -334,12 +337,10 @@ def level(height: np.ndarray, *, plane_order: int = 1, line_order: int = 0,
                 z -= rows[:, None]
         else:
             z -= align_rows(z, use, line_order)
-        centre = median(z, where=use)         # centre_sigma's: use is never empty here
+        centre, sigma = centre_sigma(z, where=use, out=scratch)     # scratch: |z - centre|
         z -= centre
-        dev = np.abs(z, out=scratch)          # its deviations, the heights' distance from 0
-        sigma = float(MAD_TO_SIGMA * median(dev, where=use))
         limit = max(k_mask * sigma, floor / 2)
-        objects = dev > limit
+        objects = scratch > limit
         if grow:                              # = binary_dilation(objects, 3 x 3, iterations=grow)
             objects = grow_square(objects, grow)
         new_use = valid & ~objects
